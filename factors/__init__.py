@@ -1,0 +1,1 @@
+"""GTSAM factors and the math they need (pure numpy + gtsam; no file I/O, no plotting)."""
