@@ -1,0 +1,564 @@
+"""Build and solve the DCC calibration graph (paper sections III-A/B), with gauge handling.
+
+Modes:
+
+* ``encoders``: joint angles are given per snapshot (the paper's prior work, eq. 4);
+* ``encoderless``: joint angles are estimated per snapshot (the paper's eq. 8);
+* ``validate``: the kinematics are held at a calibration's values and only the joint angles
+  (and target poses) are estimated (the paper's validation procedure).
+
+Formulations: ``bundle`` (maximum likelihood, target pose per snapshot, the default) and
+``two_way`` (the paper's eqs. 1, 2, 6 on PnP points). See :mod:`factors.calibration`.
+
+Gauge. The parameterization is not minimal (ARCHITECTURE.md). We hold these entries at their
+initial values, which removes exactly the unobservable directions:
+
+* L = 0: all of ``tau_s`` (only the product ``T_de T_bs`` is observable);
+* encoderless, L >= 1: ``tau_s.rz`` and ``tau_s.tz`` (they absorb a constant offset of
+  theta_1 and the DH ``d_1``), ``d_L, a_L, alpha_L`` (absorbed by ``tau_d``), and the mean of
+  theta_L over the snapshots (a prior on the mean: the offset of theta_L is absorbed by ``tau_d``);
+* encoders, L = 1: ``tau_s.rz, tau_s.tz, d_1, a_1, alpha_1``; encoders, L >= 2:
+  ``tau_s.tz, d_L, a_L, alpha_L``.
+
+The observability report is computed independently of these rules, from the eigenvectors of the
+information matrix of the *full* parameterization (Schur complement onto the kinematics); a
+parameter is observable when it has no component along the null space. The solver refuses to
+start when the data leave more directions unobservable than the gauge (for example a joint that
+never moves), naming the parameters involved.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import gtsam
+import numpy as np
+from numpy.typing import NDArray
+
+from dcc_fg.data import CalibrationDataset, Snapshot
+from dcc_fg.init import pnp_pose
+from dcc_fg.model import GimbalCalibration
+from factors import chain
+from factors.calibration import (
+    KinLayout,
+    RobustLoss,
+    SnapshotMeasurements,
+    bundle_factor,
+    bundle_residuals,
+    mean_prior_factor,
+    two_way_factor,
+    two_way_residuals,
+)
+
+FloatArray = NDArray[np.float64]
+MODES = ("encoderless", "encoders", "validate")
+FORMULATIONS = ("bundle", "two_way")
+KIN_KEY = gtsam.symbol("k", 0)
+GAUGE_SIGMA = 1e-6  # rad, prior on the mean of theta_L (a pure gauge direction: it costs nothing)
+
+
+def pose_key(i: int) -> int:
+    """Key of the target pose T_st of snapshot i."""
+    return gtsam.symbol("x", i)
+
+
+def theta_key(i: int) -> int:
+    """Key of the joint angles of snapshot i."""
+    return gtsam.symbol("j", i)
+
+
+@dataclass(frozen=True)
+class CalibrationOptions:
+    """Solver options.
+
+    Attributes:
+        mode: ``encoderless`` | ``encoders`` | ``validate``.
+        formulation: ``bundle`` | ``two_way``.
+        pixel_sigma: corner noise, pixels (1 sigma per axis); None estimates it from the residuals
+            (a-posteriori variance factor) for the reported covariances.
+        robust: None, ``huber`` or ``cauchy``; robust_k: its threshold in pixels.
+        max_iterations: Levenberg-Marquardt iterations.
+        compute_covariance: compute Marginals, standard deviations and T_ds covariances.
+    """
+
+    mode: str = "encoderless"
+    formulation: str = "bundle"
+    pixel_sigma: float | None = None
+    robust: str | None = None
+    robust_k: float = 2.0
+    max_iterations: int = 100
+    compute_covariance: bool = True
+
+    def __post_init__(self) -> None:
+        if self.mode not in MODES:
+            raise ValueError(f"mode '{self.mode}' is not one of {', '.join(MODES)}")
+        if self.formulation not in FORMULATIONS:
+            raise ValueError(f"formulation '{self.formulation}' is not one of {', '.join(FORMULATIONS)}")
+        if self.pixel_sigma is not None and not self.pixel_sigma > 0:
+            raise ValueError("pixel_sigma must be positive")
+
+
+@dataclass
+class CalibrationResult:
+    """Everything a calibration run produces.
+
+    Attributes:
+        calibration: the estimated kinematics with standard deviations, observability and statistics.
+        joint_angles: (K, L) estimated (or, in ``encoders`` mode, given) joint angles, radians.
+        joint_angle_std: (K, L) 1-sigma, radians (NaN when not estimated).
+        T_st: (K, 4, 4) target poses in the static camera (bundle) or from PnP (two-way).
+        timestamps_ns: (K,) snapshot times.
+        residuals_static / residuals_dynamic: per snapshot (N, 2) pixel residuals h(x) - z at the
+            solution, in the formulation's own sense.
+        null_space_dim: nullity of the information matrix of the full parameterization.
+        n_gauge_fixed: number of directions fixed by the gauge rules.
+        iterations, initial_error, final_error, solve_time_s: solver report (errors are GTSAM's
+            0.5 * sum of squared whitened residuals).
+        variance_factor: a-posteriori variance factor applied to the covariances (1 if sigma given).
+    """
+
+    calibration: GimbalCalibration
+    joint_angles: FloatArray
+    joint_angle_std: FloatArray
+    T_st: FloatArray
+    timestamps_ns: NDArray[np.int64]
+    residuals_static: list[FloatArray]
+    residuals_dynamic: list[FloatArray]
+    null_space_dim: int
+    n_gauge_fixed: int
+    iterations: int
+    initial_error: float
+    final_error: float
+    solve_time_s: float
+    variance_factor: float
+    options: CalibrationOptions
+    T_ds_covariances: FloatArray | None = None
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    def T_ds(self, i: int) -> FloatArray:
+        """Estimated static-to-dynamic transform of snapshot i (4x4)."""
+        return self.calibration.T_ds(self.joint_angles[i])
+
+    def reprojection_stats(self) -> dict[str, dict[str, float]]:
+        """Per camera and both: mean/std of per-corner error norms, RMS per axis (pixels), counts."""
+        out = {}
+        for name, res in (("static", self.residuals_static), ("dynamic", self.residuals_dynamic)):
+            out[name] = residual_stats(np.concatenate(res) if res else np.zeros((0, 2)))
+        out["all"] = residual_stats(np.concatenate(self.residuals_static + self.residuals_dynamic))
+        return out
+
+
+def residual_stats(r: FloatArray) -> dict[str, float]:
+    """Statistics of pixel residuals (N, 2)."""
+    if r.shape[0] == 0:
+        return {"count": 0, "mean": float("nan"), "std": float("nan"), "rms_per_axis": float("nan")}
+    norms = np.linalg.norm(r, axis=1)
+    return {
+        "count": int(r.shape[0]),
+        "mean": float(norms.mean()),
+        "std": float(norms.std()),
+        "rms_per_axis": float(np.sqrt(np.mean(r * r))),
+        "max": float(norms.max()),
+    }
+
+
+# ------------------------------------------------------------------ gauge
+
+
+def gauge_fixed_kin(n_joints: int, mode: str) -> NDArray[np.bool_]:
+    """Mask of kinematic entries held fixed in ``mode`` (see the module docstring)."""
+    names = chain.kin_names(n_joints)
+    fixed = np.zeros(len(names), dtype=bool)
+    if mode == "validate":
+        fixed[:] = True
+        return fixed
+    if n_joints == 0:
+        fixed[0:6] = True
+        return fixed
+    last = 12 + 3 * (n_joints - 1)
+    fixed[last : last + 3] = True  # d_L, a_L, alpha_L
+    fixed[5] = True  # tau_s.tz
+    if mode == "encoderless" or n_joints == 1:
+        fixed[2] = True  # tau_s.rz
+    return fixed
+
+
+def gauge_fixed_joint_offsets(n_joints: int, mode: str) -> list[int]:
+    """Joints whose mean angle is held at its initial value (0-based)."""
+    return [n_joints - 1] if (mode == "encoderless" and n_joints >= 1) else []
+
+
+# ------------------------------------------------------------------ input checks
+
+
+def minimum_snapshots(n_joints: int, mode: str) -> int:
+    """Fewest snapshots whose T_ds constraints (6 each) can determine the unknowns."""
+    if mode == "validate":
+        return 1
+    n_kin_free = chain.n_kin(n_joints) - int(gauge_fixed_kin(n_joints, mode).sum())
+    per_snapshot = 6 - (n_joints if mode == "encoderless" else 0)
+    if per_snapshot <= 0:
+        raise ValueError(f"encoderless calibration of L={n_joints} joints is not possible (at most 5)")
+    n_offsets = len(gauge_fixed_joint_offsets(n_joints, mode))
+    return int(np.ceil((n_kin_free - n_offsets) / per_snapshot)) if n_kin_free else 1
+
+
+def check_dataset(data: CalibrationDataset, n_joints: int, mode: str) -> None:
+    """Raise ValueError naming the problem for input a solver would choke on."""
+    src = data.source
+    if not data.snapshots:
+        raise ValueError(f"{src}: the snapshot list is empty")
+    n_pts = data.target_points.shape[0]
+    for i, s in enumerate(data.snapshots):
+        tag = f"{src}: snapshot {i} (t={s.timestamp_ns} ns)"
+        for cam, obs in (("static", s.static), ("dynamic", s.dynamic)):
+            if len(obs) == 0:
+                raise ValueError(f"{tag}: no target corners in the {cam} camera")
+            if len(obs) < 4:
+                raise ValueError(f"{tag}: only {len(obs)} corners in the {cam} camera (need >= 4)")
+            if not np.all(np.isfinite(obs.pixels)):
+                raise ValueError(f"{tag}: NaN or infinite pixel coordinates in the {cam} camera")
+            if obs.ids.min() < 0 or obs.ids.max() >= n_pts:
+                raise ValueError(f"{tag}: corner ids outside the target's 0..{n_pts - 1} in the {cam} camera")
+        if mode == "encoders":
+            if s.joints is None or np.asarray(s.joints).shape != (n_joints,):
+                raise ValueError(f"{tag}: encoders mode needs {n_joints} joint angles per snapshot")
+            if not np.all(np.isfinite(s.joints)):
+                raise ValueError(f"{tag}: NaN joint angles")
+    need = minimum_snapshots(n_joints, mode)
+    if len(data.snapshots) < need:
+        raise ValueError(
+            f"{src}: {len(data.snapshots)} snapshots are fewer than the unknowns allow: a {mode} calibration "
+            f"of L={n_joints} joints needs at least {need}"
+        )
+
+
+# ------------------------------------------------------------------ measurements
+
+
+def snapshot_measurements(data: CalibrationDataset, s: Snapshot) -> SnapshotMeasurements:
+    """Match a snapshot's corner ids to target points."""
+    P = data.target_points
+    return SnapshotMeasurements(P[s.static.ids], s.static.pixels, P[s.dynamic.ids], s.dynamic.pixels)
+
+
+def _axis_angle_error(T_a: FloatArray, T_b: FloatArray) -> FloatArray:
+    """6-vector [omega, v] of Log(T_b^-1 T_a) (gtsam convention)."""
+    return gtsam.Pose3(T_b).localCoordinates(gtsam.Pose3(T_a))
+
+
+def fit_joint_angles(
+    cal: GimbalCalibration, T_ds_measured: FloatArray, guess: FloatArray | None, n_starts: int = 12
+) -> FloatArray:
+    """Joint angles whose chain best matches a measured T_ds (least squares on its tangent error).
+
+    Used to initialize joint angles from PnP when no initial angles are given.
+    """
+    L = cal.n_joints
+    if L == 0:
+        return np.zeros(0)
+    starts = [np.asarray(guess, float)] if guess is not None else []
+    rng = np.random.default_rng(0)
+    starts += [rng.uniform(-np.pi, np.pi, size=L) for _ in range(n_starts)]
+    best, best_cost = starts[0], np.inf
+    for th in starts:
+        th = th.copy()
+        for _ in range(30):
+            e = _axis_angle_error(cal.T_ds(th), T_ds_measured)
+            _, J = chain.d_T_ds_tangent(cal.kin, th, L)
+            step = np.linalg.lstsq(J, -e, rcond=None)[0]
+            th += step
+            if np.linalg.norm(step) < 1e-10:
+                break
+        cost = float(np.sum(_axis_angle_error(cal.T_ds(th), T_ds_measured) ** 2))
+        if cost < best_cost:
+            best, best_cost = th, cost
+    return np.arctan2(np.sin(best), np.cos(best))
+
+
+# ------------------------------------------------------------------ observability
+
+
+def information_schur(
+    data: CalibrationDataset,
+    kin: FloatArray,
+    n_joints: int,
+    thetas: FloatArray,
+    T_st: FloatArray,
+    mode: str,
+    formulation: str,
+    sigma: float,
+    pnp: list[tuple[FloatArray, FloatArray]] | None = None,
+) -> FloatArray:
+    """Information matrix of the *full* kinematic vector (12 + 3L) after eliminating the
+    per-snapshot variables (joint angles when estimated, target poses in the bundle)."""
+    layout = KinLayout(np.asarray(kin, float), np.ones(chain.n_kin(n_joints), dtype=bool), n_joints)
+    cams = (data.static_camera, data.dynamic_camera)
+    n = chain.n_kin(n_joints)
+    S = np.zeros((n, n))
+    for i, s in enumerate(data.snapshots):
+        meas = snapshot_measurements(data, s)
+        if formulation == "bundle":
+            blocks, _ = bundle_residuals(layout, kin, thetas[i], T_st[i], meas, cams, True)
+            local = [1, 2] if mode == "encoderless" else [2]
+        else:
+            assert pnp is not None
+            P_s, P_d = pnp[i]
+            blocks = two_way_residuals(
+                layout, kin, thetas[i], P_s, meas.z_dynamic, P_d, meas.z_static, cams, True
+            )
+            local = [1] if mode == "encoderless" else []
+        Jk = np.concatenate([b[1][0].reshape(-1, n) for b in blocks]) / sigma
+        if local:
+            Jx = np.concatenate(
+                [np.concatenate([b[1][j].reshape(b[1][j].shape[0] * 2, -1) for j in local], axis=1) for b in blocks]
+            ) / sigma
+            Hxx = Jx.T @ Jx
+            Hxk = Jx.T @ Jk
+            S += Jk.T @ Jk - Hxk.T @ np.linalg.solve(Hxx, Hxk)
+        else:
+            S += Jk.T @ Jk
+    return S
+
+
+def null_space(S: FloatArray, rel_tol: float = 1e-9) -> FloatArray:
+    """Orthonormal basis (n, k) of the numerical null space of a PSD matrix, in parameter space
+    (Jacobi-scaled first so that metres and radians are treated alike)."""
+    d = np.sqrt(np.maximum(np.diag(S), 1e-300))
+    Sn = S / np.outer(d, d)
+    w, V = np.linalg.eigh(Sn)
+    N = V[:, w < rel_tol * w.max()]
+    return N
+
+
+def observable_mask(N: FloatArray, tol: float = 1e-6) -> NDArray[np.bool_]:
+    """A parameter is observable when no null-space direction moves it."""
+    if N.shape[1] == 0:
+        return np.ones(N.shape[0], dtype=bool)
+    return np.max(np.abs(N), axis=1) < tol
+
+
+# ------------------------------------------------------------------ solver
+
+
+def calibrate(
+    data: CalibrationDataset,
+    initial: GimbalCalibration,
+    options: CalibrationOptions | None = None,
+) -> CalibrationResult:
+    """Calibrate (or validate) a DCC from target snapshots.
+
+    Args:
+        data: snapshots with corner ids/pixels; ``snapshot.joints`` are encoder readings
+            (``encoders``) or initial guesses (``encoderless``/``validate``; fitted from PnP when None).
+        initial: initial kinematics (``validate``: the calibration to validate). Gauge-fixed
+            entries keep these values.
+        options: see :class:`CalibrationOptions`.
+    """
+    opt = options or CalibrationOptions()
+    L = initial.n_joints
+    check_dataset(data, L, opt.mode)
+    t_start = time.perf_counter()
+    cams = (data.static_camera, data.dynamic_camera)
+    sigma_w = opt.pixel_sigma if opt.pixel_sigma is not None else 1.0
+    robust = RobustLoss(opt.robust, opt.robust_k / sigma_w) if opt.robust else None
+
+    K = len(data.snapshots)
+    meas = [snapshot_measurements(data, s) for s in data.snapshots]
+    # PnP in both cameras: target pose initial values, two-way points, joint-angle initialization
+    T_st0 = np.array([pnp_pose(cams[0], m.p_t_static, m.z_static) for m in meas])
+    T_dt0 = np.array([pnp_pose(cams[1], m.p_t_dynamic, m.z_dynamic) for m in meas])
+    thetas0 = np.zeros((K, L))
+    for i, s in enumerate(data.snapshots):
+        if opt.mode == "encoders" or (s.joints is not None and L > 0):
+            thetas0[i] = np.asarray(s.joints, float)
+        elif L > 0:
+            thetas0[i] = fit_joint_angles(initial, T_dt0[i] @ chain.inv_se3(T_st0[i]), None)
+
+    fixed = gauge_fixed_kin(L, opt.mode)
+    layout = KinLayout(initial.kin.copy(), ~fixed, L)
+    offsets = gauge_fixed_joint_offsets(L, opt.mode)
+    estimate_theta = opt.mode != "encoders" and L > 0
+    kin_key = KIN_KEY if (~fixed).any() else None
+
+    pnp_points = [
+        (m.p_t_dynamic @ T_st0[i][:3, :3].T + T_st0[i][:3, 3], m.p_t_static @ T_dt0[i][:3, :3].T + T_dt0[i][:3, 3])
+        for i, m in enumerate(meas)
+    ]
+
+    # refuse data that leave more than the gauge unobservable
+    if opt.mode != "validate":
+        S0 = information_schur(data, initial.kin, L, thetas0, T_st0, opt.mode, opt.formulation, sigma_w, pnp_points)
+        N0 = null_space(S0, rel_tol=1e-7)
+        n_gauge = int(fixed.sum()) + len(offsets)
+        if N0.shape[1] > n_gauge:
+            _raise_unobservable(data, thetas0, N0, fixed, L)
+
+    graph = gtsam.NonlinearFactorGraph()
+    values = gtsam.Values()
+    if kin_key is not None:
+        values.insert(kin_key, initial.kin[~fixed])
+    for i, m in enumerate(meas):
+        th_key = theta_key(i) if estimate_theta else None
+        if th_key is not None:
+            values.insert(th_key, thetas0[i])
+        th_const = thetas0[i] if not estimate_theta else None
+        if opt.formulation == "bundle":
+            values.insert(pose_key(i), gtsam.Pose3(T_st0[i]))
+            graph.add(bundle_factor(layout, m, cams, sigma_w, pose_key(i), kin_key, th_key, th_const, robust))
+        else:
+            P_s, P_d = pnp_points[i]
+            graph.add(
+                two_way_factor(layout, P_s, m.z_dynamic, P_d, m.z_static, cams, sigma_w, kin_key, th_key, th_const, robust)
+            )
+    for j in offsets:
+        graph.add(mean_prior_factor([theta_key(i) for i in range(K)], j, float(thetas0[:, j].mean()), GAUGE_SIGMA))
+
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(opt.max_iterations)
+    params.setRelativeErrorTol(1e-12)
+    params.setAbsoluteErrorTol(1e-12)
+    initial_error = graph.error(values)
+    optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
+    result = optimizer.optimize()
+    iterations = optimizer.iterations()
+    final_error = graph.error(result)
+
+    kin_free = result.atVector(kin_key) if kin_key is not None else None
+    kin = layout.expand(kin_free)
+    thetas = np.array([result.atVector(theta_key(i)) for i in range(K)]) if estimate_theta else thetas0
+    if opt.formulation == "bundle":
+        T_st = np.array([result.atPose3(pose_key(i)).matrix() for i in range(K)])
+    else:
+        T_st = T_st0
+
+    # residuals in pixels at the solution
+    res_s, res_d = [], []
+    for i, m in enumerate(meas):
+        if opt.formulation == "bundle":
+            blocks, _ = bundle_residuals(layout, kin_free, thetas[i], T_st[i], m, cams, False)
+            res_s.append(blocks[0][0])
+            res_d.append(blocks[1][0])
+        else:
+            P_s, P_d = pnp_points[i]
+            blocks = two_way_residuals(layout, kin_free, thetas[i], P_s, m.z_dynamic, P_d, m.z_static, cams, False)
+            res_d.append(blocks[0][0])
+            res_s.append(blocks[1][0])
+
+    n_obs = 2 * sum(r.shape[0] for r in res_s + res_d)
+    n_unknowns = int((~fixed).sum()) + (K * L if estimate_theta else 0) + (6 * K if opt.formulation == "bundle" else 0)
+    n_unknowns -= len(offsets)
+    dof = max(n_obs - n_unknowns, 1)
+    whitened_ss = sum(float(np.sum(r * r)) for r in res_s + res_d) / sigma_w**2
+    variance_factor = 1.0 if opt.pixel_sigma is not None else whitened_ss / dof
+
+    # observability of the full parameterization at the solution
+    if opt.mode != "validate":
+        S = information_schur(data, kin, L, thetas, T_st, opt.mode, opt.formulation, sigma_w, pnp_points)
+        N = null_space(S)
+        observable = observable_mask(N)
+        null_dim = N.shape[1] + 0
+    else:
+        observable = initial.observable if initial.observable is not None else np.zeros(len(kin), dtype=bool)
+        null_dim = 0
+
+    kin_std = np.full(len(kin), np.nan)
+    theta_std = np.full((K, L), np.nan)
+    T_ds_cov = None
+    if opt.compute_covariance:
+        marginals = gtsam.Marginals(graph, result)
+        if kin_key is not None:
+            cov = marginals.marginalCovariance(kin_key) * variance_factor
+            kin_std[~fixed] = np.sqrt(np.diag(cov))
+        kin_std[~observable] = np.nan
+        if estimate_theta:
+            for i in range(K):
+                theta_std[i] = np.sqrt(np.diag(marginals.marginalCovariance(theta_key(i))) * variance_factor)
+        T_ds_cov = np.zeros((K, 6, 6))
+        for i in range(K):
+            Jk, Jt = chain.d_T_ds_tangent(kin, thetas[i], L)
+            keys, blocks_J = [], []
+            if kin_key is not None:
+                keys.append(kin_key)
+                blocks_J.append(Jk[:, ~fixed])
+            if estimate_theta:
+                keys.append(theta_key(i))
+                blocks_J.append(Jt)
+            if not keys:
+                continue
+            kv = gtsam.KeyVector()
+            for k in keys:
+                kv.append(k)
+            C = marginals.jointMarginalCovariance(kv).fullMatrix() * variance_factor
+            Jf = np.concatenate(blocks_J, axis=1)
+            T_ds_cov[i] = Jf @ C @ Jf.T
+    elif opt.mode == "validate":
+        kin_std = initial.kin_std if initial.kin_std is not None else kin_std
+
+    cal = GimbalCalibration(
+        kin,
+        L,
+        data.static_camera,
+        data.dynamic_camera,
+        kin_std=kin_std,
+        observable=observable,
+        gauge_fixed=fixed if opt.mode != "validate" else initial.gauge_fixed,
+    )
+    out = CalibrationResult(
+        calibration=cal,
+        joint_angles=thetas,
+        joint_angle_std=theta_std,
+        T_st=T_st,
+        timestamps_ns=np.array([s.timestamp_ns for s in data.snapshots], dtype=np.int64),
+        residuals_static=res_s,
+        residuals_dynamic=res_d,
+        null_space_dim=null_dim,
+        n_gauge_fixed=int(fixed.sum()) + len(offsets) if opt.mode != "validate" else 0,
+        iterations=iterations,
+        initial_error=initial_error,
+        final_error=final_error,
+        solve_time_s=time.perf_counter() - t_start,
+        variance_factor=variance_factor,
+        options=opt,
+        T_ds_covariances=T_ds_cov,
+    )
+    cal.statistics = summary_statistics(out)
+    return out
+
+
+def _raise_unobservable(
+    data: CalibrationDataset, thetas0: FloatArray, N: FloatArray, fixed: NDArray[np.bool_], L: int
+) -> None:
+    names = chain.kin_names(L)
+    moved = [names[k] for k in range(len(names)) if np.max(np.abs(N[k])) > 1e-3 and not fixed[k]]
+    hints = []
+    for j in range(L):
+        spread = float(np.ptp(thetas0[:, j])) if thetas0.shape[0] else 0.0
+        if spread < 1e-3:
+            hints.append(f"joint {j + 1} never moves during the recording (spread {spread:.2e} rad): it is unobservable")
+    msg = f"{data.source}: the data leave {N.shape[1]} unobservable directions, more than the gauge fixes"
+    if hints:
+        msg += "; " + "; ".join(hints)
+    if moved:
+        msg += f"; parameters involved: {', '.join(moved)}"
+    raise ValueError(msg)
+
+
+def summary_statistics(res: CalibrationResult) -> dict[str, Any]:
+    """The statistics block of ``calibration.yaml`` / ``summary.json``."""
+    stats = res.reprojection_stats()
+    return {
+        "mode": res.options.mode,
+        "formulation": res.options.formulation,
+        "snapshots": int(len(res.timestamps_ns)),
+        "reprojection_error_px": stats,
+        "iterations": int(res.iterations),
+        "initial_error": float(res.initial_error),
+        "final_error": float(res.final_error),
+        "solve_time_s": float(res.solve_time_s),
+        "variance_factor": float(res.variance_factor),
+        "null_space_dim": int(res.null_space_dim),
+        "gauge_directions_fixed": int(res.n_gauge_fixed),
+    }
