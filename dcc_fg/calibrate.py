@@ -38,7 +38,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from dcc_fg.data import CalibrationDataset, Snapshot
-from dcc_fg.init import pnp_pose
+from dcc_fg.init import pnp_pose, pose_level_refine
 from dcc_fg.model import GimbalCalibration
 from factors import chain
 from factors.calibration import (
@@ -383,6 +383,15 @@ def calibrate(
     estimate_theta = opt.mode != "encoders" and L > 0
     kin_key = KIN_KEY if (~fixed).any() else None
 
+    kin_start = initial.kin.copy()
+    if opt.mode != "validate" and L > 0:
+        kin_start, thetas_fit, pose_rms = robust_pose_level_init(
+            initial.kin, L, T_dt0 @ np.linalg.inv(T_st0), thetas0, ~fixed, offsets, estimate_theta
+        )
+        if estimate_theta:
+            thetas0 = thetas_fit
+        layout = KinLayout(kin_start, ~fixed, L)
+
     pnp_points = [
         (m.p_t_dynamic @ T_st0[i][:3, :3].T + T_st0[i][:3, 3], m.p_t_static @ T_dt0[i][:3, :3].T + T_dt0[i][:3, 3])
         for i, m in enumerate(meas)
@@ -390,7 +399,7 @@ def calibrate(
 
     # refuse data that leave more than the gauge unobservable
     if opt.mode != "validate":
-        S0 = information_schur(data, initial.kin, L, thetas0, T_st0, opt.mode, opt.formulation, sigma_w, pnp_points)
+        S0 = information_schur(data, kin_start, L, thetas0, T_st0, opt.mode, opt.formulation, sigma_w, pnp_points)
         N0 = null_space(S0, rel_tol=1e-7)
         n_gauge = int(fixed.sum()) + len(offsets)
         if N0.shape[1] > n_gauge:
@@ -399,7 +408,7 @@ def calibrate(
     graph = gtsam.NonlinearFactorGraph()
     values = gtsam.Values()
     if kin_key is not None:
-        values.insert(kin_key, initial.kin[~fixed])
+        values.insert(kin_key, kin_start[~fixed])
     for i, m in enumerate(meas):
         th_key = theta_key(i) if estimate_theta else None
         if th_key is not None:
@@ -526,6 +535,38 @@ def calibrate(
     )
     cal.statistics = summary_statistics(out)
     return out
+
+
+def robust_pose_level_init(
+    kin0: FloatArray,
+    L: int,
+    T_ds_pnp: FloatArray,
+    thetas0: FloatArray,
+    free: NDArray[np.bool_],
+    offsets: list[int],
+    estimate_theta: bool,
+    restarts: int = 16,
+    good_rms: float = 5.0,
+) -> tuple[FloatArray, FloatArray, float]:
+    """:func:`~dcc_fg.init.pose_level_refine` with deterministic restarts.
+
+    A fit is accepted when its whitened RMS (1 mrad / 1 mm per unit) is below ``good_rms``
+    (PnP noise alone gives ~1-3); otherwise the free kinematic entries are re-drawn around the
+    initial values (10 deg / 3 cm) and the best fit is kept.
+    """
+    best = pose_level_refine(kin0, L, T_ds_pnp, thetas0, free, offsets, estimate_theta)
+    rng = np.random.default_rng(12345)
+    is_angle = chain.kin_is_angle(L)
+    for _ in range(restarts):
+        if best[2] < good_rms:
+            break
+        kin_try = kin0.copy()
+        noise = rng.normal(size=kin0.shape) * np.where(is_angle, np.deg2rad(10.0), 0.03)
+        kin_try[free] += noise[free]
+        cand = pose_level_refine(kin_try, L, T_ds_pnp, thetas0, free, offsets, estimate_theta)
+        if cand[2] < best[2]:
+            best = cand
+    return best
 
 
 def _raise_unobservable(
