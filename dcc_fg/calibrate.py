@@ -427,8 +427,9 @@ def calibrate(
 
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(opt.max_iterations)
-    params.setRelativeErrorTol(1e-12)
+    params.setRelativeErrorTol(1e-8)
     params.setAbsoluteErrorTol(1e-12)
+    params.setDiagonalDamping(True)
     initial_error = graph.error(values)
     optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
     result = optimizer.optimize()
@@ -476,8 +477,14 @@ def calibrate(
     kin_std = np.full(len(kin), np.nan)
     theta_std = np.full((K, L), np.nan)
     T_ds_cov = None
+    marginals = None
+    covariance_note = "ok" if opt.compute_covariance else "not computed"
     if opt.compute_covariance:
-        marginals = gtsam.Marginals(graph, result)
+        try:
+            marginals = gtsam.Marginals(graph, result)
+        except RuntimeError:
+            covariance_note = "unavailable: the information matrix is too ill-conditioned for a Cholesky factorization"
+    if marginals is not None:
         if kin_key is not None:
             cov = marginals.marginalCovariance(kin_key) * variance_factor
             kin_std[~fixed] = np.sqrt(np.diag(cov))
@@ -533,6 +540,7 @@ def calibrate(
         options=opt,
         T_ds_covariances=T_ds_cov,
     )
+    out.extra["covariance"] = covariance_note
     cal.statistics = summary_statistics(out)
     return out
 
@@ -602,4 +610,5 @@ def summary_statistics(res: CalibrationResult) -> dict[str, Any]:
         "variance_factor": float(res.variance_factor),
         "null_space_dim": int(res.null_space_dim),
         "gauge_directions_fixed": int(res.n_gauge_fixed),
+        "covariance": res.extra.get("covariance", "ok"),
     }

@@ -9,7 +9,8 @@ Pinned geometry (accuracy depends on it, so it is fixed and documented here):
   joint 1 ("roll") about an axis close to the static camera's optical axis, joint 2
   ("pitch") perpendicular to it through DH twist alpha_1 = 90 deg; joint 1 is centred at
   90 deg so that joint 2 tilts the gimbal camera about its x axis;
-* joint ranges: joint 1 in 90 +- 30 deg, joint 2 in +- 12 deg, joint 3 (when L = 3) in +- 10 deg;
+* joint ranges: joint 1 in 90 +- 30 deg, joint 2 in +- 12 deg (L = 3: joint 2 in 90 +- 18 deg,
+  joint 3 in +- 18 deg, see :func:`joint_ranges`);
   a mechanism with L = 1 has only the roll joint;
 * per snapshot the board is placed 0.6-1.2 m away, between both optical axes, tilted by up to
   20 deg and rolled by up to 15 deg, and re-drawn until every corner is inside both images with
@@ -91,11 +92,21 @@ def default_cameras() -> tuple[CameraModel, CameraModel]:
 
 
 def joint_ranges(n_joints: int) -> FloatArray:
-    """(L, 2) lower/upper joint limits of the pinned mechanism, radians."""
-    ranges = [(60.0 * DEG, 120.0 * DEG), (-12.0 * DEG, 12.0 * DEG), (-10.0 * DEG, 10.0 * DEG)]
-    if n_joints > len(ranges):
-        raise ValueError(f"the pinned scene supports up to {len(ranges)} joints, got {n_joints}")
-    return np.array(ranges[:n_joints])
+    """(L, 2) lower/upper joint limits of the pinned mechanism, radians.
+
+    For L = 3, joint 2 is centred at 90 deg so that the three axes are mutually perpendicular at
+    mid-range (with joint 2 at 0 the third axis would stay nearly parallel to the first, a
+    near-degenerate mechanism).
+    """
+    ranges = {
+        0: [],
+        1: [(60.0, 120.0)],
+        2: [(60.0, 120.0), (-12.0, 12.0)],
+        3: [(60.0, 120.0), (72.0, 108.0), (-18.0, 18.0)],
+    }
+    if n_joints not in ranges:
+        raise ValueError(f"the pinned scene supports 0 to 3 joints, got {n_joints}")
+    return np.deg2rad(np.array(ranges[n_joints], dtype=float)).reshape(n_joints, 2)
 
 
 def true_kinematics(n_joints: int) -> GimbalCalibration:
@@ -113,6 +124,10 @@ def true_kinematics(n_joints: int) -> GimbalCalibration:
         ]
     )
     dh = dh_all[:n_joints]
+    if n_joints == 3:
+        # three intersecting axes would form a spherical wrist whose joint angles can absorb any
+        # rotation of the base (a near-gauge); longer links keep the L = 3 mechanism well posed
+        dh = np.array([[0.030, 0.080, 70.0 * DEG], [0.040, 0.070, -60.0 * DEG], [0.010, 0.012, 90.0 * DEG]])
     # base frame: axes ~ static camera axes (small rotation), origin 0.10 m to the right
     tau_s = np.array([1.5 * DEG, -2.0 * DEG, 3.0 * DEG, -0.10, 0.012, 0.025])
     theta_mid = joint_ranges(n_joints).mean(axis=1) if n_joints else np.zeros(0)
