@@ -383,6 +383,7 @@ def calibrate(
     estimate_theta = opt.mode != "encoders" and L > 0
     kin_key = KIN_KEY if (~fixed).any() else None
 
+    thetas_before_fit = thetas0.copy()
     kin_start = initial.kin.copy()
     if opt.mode != "validate" and L > 0:
         kin_start, thetas_fit, pose_rms = robust_pose_level_init(
@@ -403,7 +404,7 @@ def calibrate(
         N0 = null_space(S0, rel_tol=1e-7)
         n_gauge = int(fixed.sum()) + len(offsets)
         if N0.shape[1] > n_gauge:
-            _raise_unobservable(data, thetas0, N0, fixed, L)
+            _raise_unobservable(data, thetas_before_fit, N0, fixed, L)
 
     graph = gtsam.NonlinearFactorGraph()
     values = gtsam.Values()
@@ -585,8 +586,11 @@ def _raise_unobservable(
     hints = []
     for j in range(L):
         spread = float(np.ptp(thetas0[:, j])) if thetas0.shape[0] else 0.0
-        if spread < 1e-3:
-            hints.append(f"joint {j + 1} never moves during the recording (spread {spread:.2e} rad): it is unobservable")
+        if spread < np.deg2rad(2.0):
+            hints.append(
+                f"joint {j + 1} never moves during the recording (its angles span only {spread:.2e} rad): "
+                f"joint {j + 1} is unobservable"
+            )
     msg = f"{data.source}: the data leave {N.shape[1]} unobservable directions, more than the gauge fixes"
     if hints:
         msg += "; " + "; ".join(hints)
