@@ -306,15 +306,16 @@ def information_schur(
         else:
             assert pnp is not None
             P_s, P_d = pnp[i]
-            blocks = two_way_residuals(
-                layout, kin, thetas[i], P_s, meas.z_dynamic, P_d, meas.z_static, cams, True
-            )
+            blocks = two_way_residuals(layout, kin, thetas[i], P_s, meas.z_dynamic, P_d, meas.z_static, cams, True)
             local = [1] if mode == "encoderless" else []
         Jk = np.concatenate([b[1][0].reshape(-1, n) for b in blocks]) / sigma
         if local:
-            Jx = np.concatenate(
-                [np.concatenate([b[1][j].reshape(b[1][j].shape[0] * 2, -1) for j in local], axis=1) for b in blocks]
-            ) / sigma
+            Jx = (
+                np.concatenate(
+                    [np.concatenate([b[1][j].reshape(b[1][j].shape[0] * 2, -1) for j in local], axis=1) for b in blocks]
+                )
+                / sigma
+            )
             Hxx = Jx.T @ Jx
             Hxk = Jx.T @ Jk
             S += Jk.T @ Jk - Hxk.T @ np.linalg.solve(Hxx, Hxk)
@@ -421,7 +422,9 @@ def calibrate(
         else:
             P_s, P_d = pnp_points[i]
             graph.add(
-                two_way_factor(layout, P_s, m.z_dynamic, P_d, m.z_static, cams, sigma_w, kin_key, th_key, th_const, robust)
+                two_way_factor(
+                    layout, P_s, m.z_dynamic, P_d, m.z_static, cams, sigma_w, kin_key, th_key, th_const, robust
+                )
             )
     for j in offsets:
         graph.add(mean_prior_factor([theta_key(i) for i in range(K)], j, float(thetas0[:, j].mean()), GAUGE_SIGMA))

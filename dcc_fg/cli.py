@@ -57,9 +57,24 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--target", help="Kalibr target YAML (checkerboard or aprilgrid); detection folders carry their own")
     c.add_argument("--gimbal", help="initial kinematics YAML (joints, tau_s, tau_d, dh; rad and m)")
     c.add_argument("--joints", type=int, help="number of joints L when no --gimbal is given")
-    c.add_argument("--mode", default="encoderless", choices=["encoderless", "encoders"], help="joint angles unknown (encoderless) or read from joints.csv / JointState (encoders)")
-    c.add_argument("--formulation", default="bundle", choices=["bundle", "two_way"], help="maximum-likelihood bundle (default) or the paper's two-way error")
-    c.add_argument("--pixel-sigma", type=float, default=None, help="corner noise in pixels (1 sigma); default: estimated from the residuals")
+    c.add_argument(
+        "--mode",
+        default="encoderless",
+        choices=["encoderless", "encoders"],
+        help="joint angles unknown (encoderless) or read from joints.csv / JointState (encoders)",
+    )
+    c.add_argument(
+        "--formulation",
+        default="bundle",
+        choices=["bundle", "two_way"],
+        help="maximum-likelihood bundle (default) or the paper's two-way error",
+    )
+    c.add_argument(
+        "--pixel-sigma",
+        type=float,
+        default=None,
+        help="corner noise in pixels (1 sigma); default: estimated from the residuals",
+    )
     c.add_argument("--robust", choices=["huber", "cauchy"], default=None, help="per-corner robust loss")
     c.add_argument("--robust-k", type=float, default=2.0, help="robust loss threshold in pixels (default 2)")
     c.add_argument("--out", default="dcc_fg_calibration", help="output folder")

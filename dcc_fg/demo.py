@@ -78,7 +78,9 @@ def run_demo(out_dir: Path, seed: int = 0, n_joints: int = 2, verbose: bool = Tr
             "joint_offset_free_rms_rad": crb.joint_rms.tolist(),
         },
         "paper": PAPER,
-        "observable_parameters": [n for n, o in zip(res.calibration.names, res.calibration.observable, strict=True) if o],
+        "observable_parameters": [
+            n for n, o in zip(res.calibration.names, res.calibration.observable, strict=True) if o
+        ],
         "total_time_s": 0.0,
     }
     out_dir.mkdir(parents=True, exist_ok=True)

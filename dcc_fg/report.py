@@ -15,9 +15,20 @@ def _fmt(x: float | None) -> str:
 
 def _rows(title: str, header: list[str], rows: list[list[Any]]) -> str:
     widths = [max(len(str(r[i])) for r in [header, *rows]) for i in range(len(header))]
-    lines = [title, "  " + "  ".join(str(h).rjust(w) if i else str(h).ljust(w) for i, (h, w) in enumerate(zip(header, widths, strict=True)))]
+    lines = [
+        title,
+        "  "
+        + "  ".join(
+            str(h).rjust(w) if i else str(h).ljust(w) for i, (h, w) in enumerate(zip(header, widths, strict=True))
+        ),
+    ]
     for r in rows:
-        lines.append("  " + "  ".join(str(c).rjust(w) if i else str(c).ljust(w) for i, (c, w) in enumerate(zip(r, widths, strict=True))))
+        lines.append(
+            "  "
+            + "  ".join(
+                str(c).rjust(w) if i else str(c).ljust(w) for i, (c, w) in enumerate(zip(r, widths, strict=True))
+            )
+        )
     return "\n".join(lines)
 
 
@@ -25,10 +36,20 @@ def calibration_table(stats: dict[str, Any]) -> str:
     """Reprojection statistics of one calibration run (from ``GimbalCalibration.statistics``)."""
     rep = stats["reprojection_error_px"]
     rows = [
-        [cam, rep[cam]["count"], _fmt(rep[cam]["mean"]), _fmt(rep[cam]["std"]), _fmt(rep[cam]["rms_per_axis"]), _fmt(rep[cam].get("max"))]
+        [
+            cam,
+            rep[cam]["count"],
+            _fmt(rep[cam]["mean"]),
+            _fmt(rep[cam]["std"]),
+            _fmt(rep[cam]["rms_per_axis"]),
+            _fmt(rep[cam].get("max")),
+        ]
         for cam in ("static", "dynamic", "all")
     ]
-    head = f"{stats['mode']} calibration ({stats['formulation']}), {stats['snapshots']} snapshots, {stats['iterations']} iterations, {stats['solve_time_s']:.2f} s"
+    head = (
+        f"{stats['mode']} calibration ({stats['formulation']}), {stats['snapshots']} snapshots, "
+        f"{stats['iterations']} iterations, {stats['solve_time_s']:.2f} s"
+    )
     return _rows(head, ["camera", "corners", "mean |e| px", "std px", "RMS/axis px", "max px"], rows)
 
 
@@ -46,15 +67,29 @@ def demo_table(s: dict[str, Any]) -> str:
             ["", "paper cal", "dcc-fg cal", "paper val", "dcc-fg val"],
             [
                 ["images", n_cal, n_cal, n_val, n_val],
-                ["mean |e| (px)", _fmt(p["reprojection_mean_px"]["calibration"]), _fmt(cal_rep["mean"]), _fmt(p["reprojection_mean_px"]["validation"]), _fmt(val_rep["mean"])],
-                ["std |e| (px)", _fmt(p["reprojection_std_px"]["calibration"]), _fmt(cal_rep["std"]), _fmt(p["reprojection_std_px"]["validation"]), _fmt(val_rep["std"])],
+                [
+                    "mean |e| (px)",
+                    _fmt(p["reprojection_mean_px"]["calibration"]),
+                    _fmt(cal_rep["mean"]),
+                    _fmt(p["reprojection_mean_px"]["validation"]),
+                    _fmt(val_rep["mean"]),
+                ],
+                [
+                    "std |e| (px)",
+                    _fmt(p["reprojection_std_px"]["calibration"]),
+                    _fmt(cal_rep["std"]),
+                    _fmt(p["reprojection_std_px"]["validation"]),
+                    _fmt(val_rep["std"]),
+                ],
                 ["RMS per axis (px)", "-", _fmt(cal_rep["rms_per_axis"]), "-", _fmt(val_rep["rms_per_axis"])],
             ],
         )
     )
     gt = s["ground_truth_errors"]["bundle"]
     rows = []
-    for j, (jc, jv) in enumerate(zip(gt["calibration"]["joint_offset_free_rad"], gt["validation"]["joint_offset_free_rad"], strict=True)):
+    for j, (jc, jv) in enumerate(
+        zip(gt["calibration"]["joint_offset_free_rad"], gt["validation"]["joint_offset_free_rad"], strict=True)
+    ):
         pc = p["joint_mean_rad"]["calibration"][j] if j < 2 else None
         pv = p["joint_mean_rad"]["validation"][j] if j < 2 else None
         sc = p["joint_std_rad"]["calibration"][j] if j < 2 else None
@@ -63,8 +98,22 @@ def demo_table(s: dict[str, Any]) -> str:
         rows.append([f"joint {j + 1} std", _fmt(sc), _fmt(jc["std"]), _fmt(sv), _fmt(jv["std"])])
     crb = s["cramer_rao_bound"]
     for j, b in enumerate(crb["joint_offset_free_rms_rad"]):
-        rows.append([f"joint {j + 1} RMS / CRB", "-", f"{_fmt(gt['calibration']['joint_offset_free_rad'][j]['rms'])} / {_fmt(b)}", "-", "-"])
-    out.append(_rows("Table II - joint-angle errors (rad, constant offset per joint removed)", ["", "paper cal", "dcc-fg cal", "paper val", "dcc-fg val"], rows))
+        rows.append(
+            [
+                f"joint {j + 1} RMS / CRB",
+                "-",
+                f"{_fmt(gt['calibration']['joint_offset_free_rad'][j]['rms'])} / {_fmt(b)}",
+                "-",
+                "-",
+            ]
+        )
+    out.append(
+        _rows(
+            "Table II - joint-angle errors (rad, constant offset per joint removed)",
+            ["", "paper cal", "dcc-fg cal", "paper val", "dcc-fg val"],
+            rows,
+        )
+    )
 
     kin = gt["calibration"]["kinematic_errors_observable"]
     trans = [abs(v) for k, v in kin.items() if k.split(".")[1] in ("tx", "ty", "tz", "d", "a")]
@@ -74,9 +123,21 @@ def demo_table(s: dict[str, Any]) -> str:
             "Table III - kinematic parameter errors (observable parameters only: " + ", ".join(kin) + ")",
             ["", "paper", "dcc-fg"],
             [
-                ["translation mean |err| (m)", _fmt(p["translation_param_mean_m"]), _fmt(float(np.mean(trans)) if trans else None)],
-                ["translation std (m)", _fmt(p["translation_param_std_m"]), _fmt(float(np.std(trans)) if trans else None)],
-                ["rotation mean |err| (rad)", _fmt(p["rotation_param_mean_rad"]), _fmt(float(np.mean(rot)) if rot else None)],
+                [
+                    "translation mean |err| (m)",
+                    _fmt(p["translation_param_mean_m"]),
+                    _fmt(float(np.mean(trans)) if trans else None),
+                ],
+                [
+                    "translation std (m)",
+                    _fmt(p["translation_param_std_m"]),
+                    _fmt(float(np.std(trans)) if trans else None),
+                ],
+                [
+                    "rotation mean |err| (rad)",
+                    _fmt(p["rotation_param_mean_rad"]),
+                    _fmt(float(np.mean(rot)) if rot else None),
+                ],
                 ["rotation std (rad)", _fmt(p["rotation_param_std_rad"]), _fmt(float(np.std(rot)) if rot else None)],
             ],
         )
@@ -87,8 +148,20 @@ def demo_table(s: dict[str, Any]) -> str:
             "Gauge-invariant errors: T_ds(theta_i) per snapshot against ground truth",
             ["", "bundle cal", "two-way cal", "bundle val", "CRB (cal)"],
             [
-                ["rotation RMS (rad)", _fmt(gt["calibration"]["T_ds_rotation_rad"]["rms"]), _fmt(tw["T_ds_rotation_rad"]["rms"]), _fmt(gt["validation"]["T_ds_rotation_rad"]["rms"]), _fmt(crb["T_ds_rotation_rms_rad"])],
-                ["translation RMS (m)", _fmt(gt["calibration"]["T_ds_translation_m"]["rms"]), _fmt(tw["T_ds_translation_m"]["rms"]), _fmt(gt["validation"]["T_ds_translation_m"]["rms"]), _fmt(crb["T_ds_translation_rms_m"])],
+                [
+                    "rotation RMS (rad)",
+                    _fmt(gt["calibration"]["T_ds_rotation_rad"]["rms"]),
+                    _fmt(tw["T_ds_rotation_rad"]["rms"]),
+                    _fmt(gt["validation"]["T_ds_rotation_rad"]["rms"]),
+                    _fmt(crb["T_ds_rotation_rms_rad"]),
+                ],
+                [
+                    "translation RMS (m)",
+                    _fmt(gt["calibration"]["T_ds_translation_m"]["rms"]),
+                    _fmt(tw["T_ds_translation_m"]["rms"]),
+                    _fmt(gt["validation"]["T_ds_translation_m"]["rms"]),
+                    _fmt(crb["T_ds_translation_rms_m"]),
+                ],
             ],
         )
     )

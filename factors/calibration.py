@@ -204,9 +204,7 @@ def bundle_residuals(
         assert Jc is not None and Jp_d is not None
         J_kin = np.einsum("nij,njk->nik", Jp_d, Jc.d_kin[:, :, free])
         J_theta = np.einsum("nij,njk->nik", Jp_d, Jc.d_theta)
-        J_pose = np.einsum(
-            "nij,njk->nik", Jp_d @ Jc.d_point, pose_point_jacobian(R_st, meas.p_t_dynamic)
-        )
+        J_pose = np.einsum("nij,njk->nik", Jp_d @ Jc.d_point, pose_point_jacobian(R_st, meas.p_t_dynamic))
         blocks.append((uv_d - meas.z_dynamic, [J_kin, J_theta, J_pose]))
     else:
         blocks.append((uv_d - meas.z_dynamic, []))
@@ -338,4 +336,3 @@ def mean_prior_factor(keys: list[int], component: int, value: float, sigma: floa
         return np.array([(np.mean([v[component] for v in vecs]) - value) / sigma])
 
     return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(1), keys, error)
-

@@ -40,9 +40,7 @@ class CameraModel:
         if self.camera_model != "pinhole":
             raise ValueError(f"camera_model '{self.camera_model}' is not supported (only 'pinhole')")
         if self.distortion_model not in DISTORTION_MODELS:
-            raise ValueError(
-                f"distortion_model '{self.distortion_model}' is not one of {', '.join(DISTORTION_MODELS)}"
-            )
+            raise ValueError(f"distortion_model '{self.distortion_model}' is not one of {', '.join(DISTORTION_MODELS)}")
         if len(self.intrinsics) != 4:
             raise ValueError(f"intrinsics must be [fx, fy, cx, cy], got {list(self.intrinsics)}")
         if self.distortion_model != "none" and len(self.distortion_coeffs) != 4:
@@ -140,9 +138,7 @@ class CameraModel:
     def in_image(self, uv: FloatArray, margin: float = 0.0) -> NDArray[np.bool_]:
         """True for pixels inside the image (with ``margin`` pixels of border)."""
         w, h = self.resolution
-        return (
-            (uv[:, 0] >= margin) & (uv[:, 0] <= w - 1 - margin) & (uv[:, 1] >= margin) & (uv[:, 1] <= h - 1 - margin)
-        )
+        return (uv[:, 0] >= margin) & (uv[:, 0] <= w - 1 - margin) & (uv[:, 1] >= margin) & (uv[:, 1] <= h - 1 - margin)
 
     def undistort_points(self, uv: FloatArray, iterations: int = 20) -> FloatArray:
         """Pixels (N, 2) to normalized image coordinates (N, 2): inverse of K and the distortion.

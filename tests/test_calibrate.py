@@ -8,7 +8,14 @@ import numpy as np
 import pytest
 
 from dcc_fg import load_calibration
-from dcc_fg.calibrate import CalibrationOptions, calibrate, gauge_fixed_joint_offsets, gauge_fixed_kin, information_schur, null_space
+from dcc_fg.calibrate import (
+    CalibrationOptions,
+    calibrate,
+    gauge_fixed_joint_offsets,
+    gauge_fixed_kin,
+    information_schur,
+    null_space,
+)
 from dcc_fg.data import Observation
 from dcc_fg.sim.calibration_scene import SceneConfig, simulate_calibration
 from dcc_fg.sim.evaluation import cramer_rao_bound, evaluate_against_truth
@@ -113,7 +120,9 @@ def test_robust_loss_rejects_outliers(demo_sim) -> None:
         snaps.append(replace(s, dynamic=Observation(s.dynamic.ids, px)))
     corrupted = replace(data, snapshots=snaps)
     plain = calibrate(corrupted, demo_sim.initial, CalibrationOptions(compute_covariance=False))
-    robust = calibrate(corrupted, demo_sim.initial, CalibrationOptions(compute_covariance=False, robust="cauchy", robust_k=1.0))
+    robust = calibrate(
+        corrupted, demo_sim.initial, CalibrationOptions(compute_covariance=False, robust="cauchy", robust_k=1.0)
+    )
     e_plain = evaluate_against_truth(plain, demo_sim.truth, demo_sim.joints_calibration[:30])
     e_rob = evaluate_against_truth(robust, demo_sim.truth, demo_sim.joints_calibration[:30])
     assert e_rob.rotation_rms < 0.5 * e_plain.rotation_rms

@@ -50,7 +50,9 @@ def test_chain_point_jacobians(L: int, seed: int, inverse: bool) -> None:
         e = np.zeros_like(kin)
         e[k] = H
         num = (f(kin + e, th, p, L, False)[0] - f(kin - e, th, p, L, False)[0]) / (2 * H)
-        assert rel_err(J.d_kin[:, :, k], num) < 1e-6 or np.max(np.abs(J.d_kin[:, :, k] - num)) < 1e-8, chain.kin_names(L)[k]
+        assert rel_err(J.d_kin[:, :, k], num) < 1e-6 or np.max(np.abs(J.d_kin[:, :, k] - num)) < 1e-8, chain.kin_names(
+            L
+        )[k]
     for k in range(L):
         e = np.zeros(L)
         e[k] = H
@@ -72,19 +74,27 @@ def test_T_ds_tangent_jacobian_matches_gtsam_local_coordinates(L: int) -> None:
     for k in range(kin.size):
         e = np.zeros_like(kin)
         e[k] = H
-        num = (T0.localCoordinates(gtsam.Pose3(chain.T_ds(kin + e, th, L))) - T0.localCoordinates(gtsam.Pose3(chain.T_ds(kin - e, th, L)))) / (2 * H)
+        num = (
+            T0.localCoordinates(gtsam.Pose3(chain.T_ds(kin + e, th, L)))
+            - T0.localCoordinates(gtsam.Pose3(chain.T_ds(kin - e, th, L)))
+        ) / (2 * H)
         assert np.max(np.abs(num - Jk[:, k])) < 1e-6 * max(1.0, np.max(np.abs(num)))
     for k in range(L):
         e = np.zeros(L)
         e[k] = H
-        num = (T0.localCoordinates(gtsam.Pose3(chain.T_ds(kin, th + e, L))) - T0.localCoordinates(gtsam.Pose3(chain.T_ds(kin, th - e, L)))) / (2 * H)
+        num = (
+            T0.localCoordinates(gtsam.Pose3(chain.T_ds(kin, th + e, L)))
+            - T0.localCoordinates(gtsam.Pose3(chain.T_ds(kin, th - e, L)))
+        ) / (2 * H)
         assert rel_err(Jt[:, k], num) < 1e-6
 
 
 def test_tau_round_trip() -> None:
     rng = np.random.default_rng(3)
     for _ in range(20):
-        tau = np.concatenate([rng.uniform(-3, 3, 1), rng.uniform(-1.5, 1.5, 1), rng.uniform(-3, 3, 1), rng.normal(size=3)])
+        tau = np.concatenate(
+            [rng.uniform(-3, 3, 1), rng.uniform(-1.5, 1.5, 1), rng.uniform(-3, 3, 1), rng.normal(size=3)]
+        )
         np.testing.assert_allclose(chain.tau_from_se3(chain.se3_from_tau(tau)), tau, atol=1e-10)
 
 

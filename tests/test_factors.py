@@ -13,7 +13,9 @@ from factors import chain
 from factors.calibration import KinLayout, RobustLoss, bundle_factor, mean_prior_factor, two_way_factor
 
 
-def numeric_jacobian(factor: gtsam.NonlinearFactor, values: gtsam.Values, dims: list[tuple[int, int]], h: float = 1e-6) -> np.ndarray:
+def numeric_jacobian(
+    factor: gtsam.NonlinearFactor, values: gtsam.Values, dims: list[tuple[int, int]], h: float = 1e-6
+) -> np.ndarray:
     cols = []
     for key, dim in dims:
         for k in range(dim):
@@ -55,12 +57,15 @@ def setup(L: int, robust: RobustLoss | None):
 
 
 @pytest.mark.parametrize("L", [0, 1, 2, 3])
-@pytest.mark.parametrize("robust", [None, RobustLoss("huber", 1.0), RobustLoss("cauchy", 1.0)], ids=["l2", "huber", "cauchy"])
+@pytest.mark.parametrize(
+    "robust", [None, RobustLoss("huber", 1.0), RobustLoss("cauchy", 1.0)], ids=["l2", "huber", "cauchy"]
+)
 def test_bundle_factor_jacobians(L: int, robust: RobustLoss | None) -> None:
     sim, layout, m, cams, values, nf = setup(L, robust)
     keys = [KIN_KEY, pose_key(0)] if L == 0 else [KIN_KEY, theta_key(0), pose_key(0)]
-    f = bundle_factor(layout, m, cams, 0.4, pose_key(0), KIN_KEY, theta_key(0) if L else None,
-                      None if L else np.zeros(0), robust)
+    f = bundle_factor(
+        layout, m, cams, 0.4, pose_key(0), KIN_KEY, theta_key(0) if L else None, None if L else np.zeros(0), robust
+    )
     dims = [(KIN_KEY, nf)] + ([(theta_key(0), L)] if L else []) + [(pose_key(0), 6)]
     A = analytic_jacobian(f, values, keys)
     N = numeric_jacobian(f, values, dims)
@@ -74,8 +79,19 @@ def test_two_way_factor_jacobians(L: int) -> None:
     T_dt = pnp_pose(cams[1], m.p_t_dynamic, m.z_dynamic)
     P_s = m.p_t_dynamic @ T_st[:3, :3].T + T_st[:3, 3]
     P_d = m.p_t_static @ T_dt[:3, :3].T + T_dt[:3, 3]
-    f = two_way_factor(layout, P_s, m.z_dynamic, P_d, m.z_static, cams, 0.4, KIN_KEY, theta_key(0) if L else None,
-                       None if L else np.zeros(0), RobustLoss("huber", 1.5))
+    f = two_way_factor(
+        layout,
+        P_s,
+        m.z_dynamic,
+        P_d,
+        m.z_static,
+        cams,
+        0.4,
+        KIN_KEY,
+        theta_key(0) if L else None,
+        None if L else np.zeros(0),
+        RobustLoss("huber", 1.5),
+    )
     keys = [KIN_KEY] + ([theta_key(0)] if L else [])
     dims = [(KIN_KEY, nf)] + ([(theta_key(0), L)] if L else [])
     A = analytic_jacobian(f, values, keys)

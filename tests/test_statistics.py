@@ -3,7 +3,6 @@ reported covariance, and the bundle (ML) formulation against the paper's two-way
 
 from __future__ import annotations
 
-
 import numpy as np
 import pytest
 
@@ -24,7 +23,9 @@ def runs():
     for seed in SEEDS:
         sim = simulate_calibration(seed)
         res = calibrate(sim.calibration_set, sim.initial, CalibrationOptions())
-        two_way = calibrate(sim.calibration_set, sim.initial, CalibrationOptions(formulation="two_way", compute_covariance=False))
+        two_way = calibrate(
+            sim.calibration_set, sim.initial, CalibrationOptions(formulation="two_way", compute_covariance=False)
+        )
         crb = cramer_rao_bound(sim.calibration_set, sim.truth, sim.joints_calibration, sim.T_st_calibration, 0.4)
         out.append(
             (
@@ -44,7 +45,10 @@ def test_rms_errors_within_1_2x_of_cramer_rao_bound(runs) -> None:
     crb_rot = np.sqrt(np.mean([b.rotation_rms**2 for _, _, b, _ in runs]))
     crb_tra = np.sqrt(np.mean([b.translation_rms**2 for _, _, b, _ in runs]))
     crb_j = np.sqrt(np.mean([b.joint_rms**2 for _, _, b, _ in runs], axis=0))
-    print(f"T_ds rotation {err_rot:.3e} vs CRB {crb_rot:.3e}; translation {err_tra:.3e} vs {crb_tra:.3e}; joints {err_j} vs {crb_j}")
+    print(
+        f"T_ds rotation {err_rot:.3e} vs CRB {crb_rot:.3e}; translation {err_tra:.3e} vs {crb_tra:.3e}; "
+        f"joints {err_j} vs {crb_j}"
+    )
     assert err_rot < 1.2 * crb_rot
     assert err_tra < 1.2 * crb_tra
     assert np.all(err_j < 1.2 * crb_j)
@@ -67,5 +71,3 @@ def test_no_seed_fails_to_converge(runs) -> None:
     for e, _, b, r in runs:
         assert abs(r.reprojection_stats()["all"]["rms_per_axis"] - 0.4) < 0.04
         assert e.rotation_rms < 3 * b.rotation_rms
-
-

@@ -31,7 +31,9 @@ from factors.calibration import KinLayout, bundle_residuals
 FloatArray = NDArray[np.float64]
 
 
-def T_ds_errors(truth: GimbalCalibration, thetas_true: FloatArray, est: GimbalCalibration, thetas_est: FloatArray) -> FloatArray:
+def T_ds_errors(
+    truth: GimbalCalibration, thetas_true: FloatArray, est: GimbalCalibration, thetas_est: FloatArray
+) -> FloatArray:
     """(K, 6) tangent errors ``[omega, v]`` of T_ds per snapshot (rad, m)."""
     out = np.zeros((len(thetas_true), 6))
     for i, (tt, te) in enumerate(zip(thetas_true, thetas_est, strict=True)):
