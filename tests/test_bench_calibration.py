@@ -1,0 +1,36 @@
+"""Smoke test of benchmarks/bench_calibration.py on a small problem (12 snapshots)."""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+from pathlib import Path
+from types import ModuleType
+
+import pytest
+
+BENCH = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_calibration.py"
+
+
+def _load_bench() -> ModuleType:
+    spec = importlib.util.spec_from_file_location("bench_calibration", BENCH)
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # dataclasses resolve annotations through sys.modules
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_bench_calibration_small_problem_same_cost() -> None:
+    bench = _load_bench()
+    out = bench.run(seed=0, snapshots=12, verbose=False)
+    # both solvers start from the values calibrate() hands to GTSAM
+    assert out["initial_cost_shared"] == pytest.approx(out["calibrate_initial_cost"], rel=1e-9)
+    assert out["gtsam_initial_cost"] == pytest.approx(out["calibrate_initial_cost"], rel=1e-12)
+    # the reproduced GTSAM solve is calibrate()'s solve
+    assert out["gtsam_final_cost"] == pytest.approx(out["calibrate_final_cost"], rel=1e-9)
+    assert out["gtsam_final_cost_graph"] == pytest.approx(out["gtsam_final_cost"], rel=1e-9)
+    # both solvers reach the same minimum of the shared cost
+    assert out["scipy_final_cost"] == pytest.approx(out["gtsam_final_cost"], rel=1e-6)
+    assert out["gtsam_final_cost"] < out["initial_cost_shared"]
+    assert out["gtsam_time_s"] > 0 and out["scipy_time_s"] > 0
