@@ -16,7 +16,6 @@ def test_ruff_clean() -> None:
     ruff = shutil.which("ruff") or str(Path(sys.executable).parent / "ruff")
     if not Path(ruff).exists():
         pytest.skip("ruff is not installed (pip install -e '.[dev]')")
-    proc = subprocess.run(
-        [ruff, "check", "factors", "dcc_fg", "tests", "benchmarks"], cwd=ROOT, capture_output=True, text=True
-    )
+    folders = [d for d in ("factors", "dcc_fg", "tests", "benchmarks") if (ROOT / d).is_dir()]
+    proc = subprocess.run([ruff, "check", *folders], cwd=ROOT, capture_output=True, text=True)
     assert proc.returncode == 0, proc.stdout + proc.stderr
