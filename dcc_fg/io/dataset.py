@@ -1,0 +1,230 @@
+"""Load any supported input into a :class:`~dcc_fg.data.CalibrationDataset`.
+
+Layouts, recognised by their content (:func:`detect_layout`):
+
+* ``ros1_bag``: a ROS1 ``.bag`` file; ``ros2_bag``: a ROS2 bag folder (``metadata.yaml``,
+  ``*.db3`` or ``*.mcap``).  Image topics are the camchain's ``rostopic`` entries (or the
+  ``static_topic`` / ``dynamic_topic`` arguments); joints from a ``sensor_msgs/JointState``
+  topic.
+* ``image_folder``: ``cam0/<timestamp_ns>.png``, ``cam1/<timestamp_ns>.png``, optional
+  ``joints.csv``.
+* ``detection_folder``: ``cam0/<timestamp_ns>.csv``, ``cam1/<timestamp_ns>.csv`` in yac's
+  layout, optional ``joints.csv``; the target comes from the CSV headers.
+
+``cam0`` is the static camera s, ``cam1`` the dynamic (gimbal) camera d.  Snapshot timestamps
+are the static frame's, in ns; pixels are in the distorted images; joint angles in radians.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable, Iterable, Mapping
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+from numpy.typing import NDArray
+from tqdm import tqdm
+
+from dcc_fg.data import CalibrationDataset, Observation, Snapshot
+from dcc_fg.detection import detect_target
+from dcc_fg.io.bags import BagImagePairs, is_bag
+from dcc_fg.io.camchain import CamchainEntry, load_camchain
+from dcc_fg.io.detections import is_detection_csv, read_detection_folder
+from dcc_fg.io.folders import DYNAMIC_DIR, IMAGE_SUFFIXES, STATIC_DIR, FramePair, ImageFolder
+from dcc_fg.io.pairing import DEFAULT_TOLERANCE_NS
+from dcc_fg.targets import TargetGeometry, load_target
+
+log = logging.getLogger(__name__)
+
+Layout = Literal["ros1_bag", "ros2_bag", "image_folder", "detection_folder"]
+Detector = Callable[[NDArray[np.generic], TargetGeometry], Observation]
+
+
+def detect_layout(path: str | Path) -> Layout:
+    """Which input layout ``path`` holds, judged by content (not by name alone).
+
+    Raises:
+        ValueError: naming ``path`` if it does not exist or matches no layout.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise ValueError(f"{path}: no such file or folder")
+    if is_bag(path):
+        return "ros1_bag" if path.is_file() else "ros2_bag"
+    if path.is_file():
+        raise ValueError(f"{path}: not a ROS1 bag (no '#ROSBAG V2.0' magic); expected a bag or a data folder")
+    static = path / STATIC_DIR
+    if not static.is_dir() or not (path / DYNAMIC_DIR).is_dir():
+        raise ValueError(
+            f"{path}: not a ROS2 bag folder (no metadata.yaml, *.db3, *.mcap) and no {STATIC_DIR}/ and "
+            f"{DYNAMIC_DIR}/ subfolders (image or detection folder layout)"
+        )
+    files = sorted(p for p in static.iterdir() if p.is_file())
+    csvs = [p for p in files if p.suffix.lower() == ".csv"]
+    images = [p for p in files if p.suffix.lower() in IMAGE_SUFFIXES]
+    if csvs and not images:
+        if not is_detection_csv(csvs[0]):
+            raise ValueError(f"{csvs[0]}: CSV without yac's detection header (#ts,tag_rows,...,tag_id,corner_idx)")
+        return "detection_folder"
+    if images and not csvs:
+        return "image_folder"
+    if images and csvs:
+        raise ValueError(f"{static}: holds both images and CSV files; cannot tell the layout")
+    raise ValueError(f"{static}: no images (*.png, *.jpg, ...) and no detection CSV files")
+
+
+def _common(snap: Snapshot) -> int:
+    return int(np.intersect1d(snap.static.ids, snap.dynamic.ids).size)
+
+
+def _check_resolution(img: NDArray[np.generic], entry: CamchainEntry, cam: str, where: str) -> None:
+    w, h = entry.camera.resolution
+    if img.shape[:2] != (h, w):
+        raise ValueError(
+            f"{where}: image is {img.shape[1]}x{img.shape[0]} but the camchain's {cam} resolution is {w}x{h}"
+        )
+
+
+def _detect_frames(
+    frames: Iterable[FramePair],
+    total: int,
+    target: TargetGeometry,
+    entries: tuple[CamchainEntry, CamchainEntry],
+    names: tuple[str, str],
+    detector: Detector,
+    progress: bool,
+    desc: str,
+) -> list[Snapshot]:
+    snapshots = []
+    for fr in tqdm(frames, total=total, desc=desc, unit="pair", disable=not progress, leave=False):
+        _check_resolution(fr.static, entries[0], names[0], fr.static_source)
+        _check_resolution(fr.dynamic, entries[1], names[1], fr.dynamic_source)
+        obs_s = detector(fr.static, target)
+        obs_d = detector(fr.dynamic, target)
+        snapshots.append(Snapshot(fr.timestamp_ns, obs_s, obs_d, fr.joints))
+    return snapshots
+
+
+def _keep(
+    snapshots: list[Snapshot], min_common_points: int, where: tuple[str, str], target: TargetGeometry
+) -> list[Snapshot]:
+    """Snapshots where both cameras see >= ``min_common_points`` common points; clear errors if none."""
+    n_s = sum(1 for s in snapshots if len(s.static) > 0)
+    n_d = sum(1 for s in snapshots if len(s.dynamic) > 0)
+    kind = f"{target.target_type} {target.cols}x{target.rows}"
+    if n_s == 0 and n_d == 0:
+        raise ValueError(
+            f"target ({kind}) never detected in {len(snapshots)} image pairs of {where[0]} and {where[1]} "
+            "(check target.yaml: targetCols/targetRows count inner corners, tagCols/tagRows count tags)"
+        )
+    for n, w in ((n_s, where[0]), (n_d, where[1])):
+        if n == 0:
+            raise ValueError(f"{w}: target ({kind}) never detected in {len(snapshots)} images")
+    kept = [s for s in snapshots if _common(s) >= min_common_points]
+    log.info(
+        "%d of %d snapshots kept (both cameras see >= %d common target points; target found in %d static, "
+        "%d dynamic images)",
+        len(kept),
+        len(snapshots),
+        min_common_points,
+        n_s,
+        n_d,
+    )
+    if not kept:
+        best = max((_common(s) for s in snapshots), default=0)
+        raise ValueError(
+            f"{where[0]} / {where[1]}: no image pair where both cameras see at least {min_common_points} common "
+            f"target points (best pair: {best}); the target was found in {n_s} static and {n_d} dynamic images"
+        )
+    return kept
+
+
+def load_dataset(
+    path: str | Path,
+    camchain: str | Path | Mapping[str, CamchainEntry],
+    target: str | Path | TargetGeometry | None = None,
+    *,
+    static_cam: str = "cam0",
+    dynamic_cam: str = "cam1",
+    static_topic: str | None = None,
+    dynamic_topic: str | None = None,
+    joint_topic: str | None = "auto",
+    joint_names: list[str] | None = None,
+    tolerance_ns: int = DEFAULT_TOLERANCE_NS,
+    min_common_points: int = 8,
+    detector: Detector | None = None,
+    progress: bool = True,
+) -> CalibrationDataset:
+    """Read a bag, image folder or detection folder into a calibration dataset.
+
+    Args:
+        path: bag file / bag folder / image folder / detection folder (see :func:`detect_layout`).
+        camchain: Kalibr camchain YAML path or its parsed entries; gives both cameras'
+            intrinsics and (for bags) image topics.
+        target: Kalibr target YAML path or geometry; optional for detection folders (inferred
+            from the CSV headers, and checked against this if given).
+        static_cam, dynamic_cam: camchain entries of the static and the dynamic camera.
+        static_topic, dynamic_topic: override the camchain's ``rostopic`` (bags only).
+        joint_topic: ``sensor_msgs/JointState`` topic (bags); ``"auto"`` uses the bag's only
+            JointState topic if there is one; None ignores joints.
+        joint_names: joint order for JointState messages (default: as recorded).
+        tolerance_ns: timestamp pairing tolerance between the cameras (and joints), ns.
+        min_common_points: keep a snapshot only if both cameras see at least this many of the
+            same target points.
+        detector: ``detector(image, target) -> Observation``; default
+            :func:`dcc_fg.detection.detect_target`.
+        progress: show a tqdm progress bar over the image pairs.
+
+    Returns:
+        The dataset; ``source`` is ``path``.
+
+    Raises:
+        ValueError: naming the file, topic or field at fault: unknown layout, missing camchain
+            entry or topic, image that does not decode or has the wrong size, truncated bag,
+            timestamps that never pair, target never detected, no snapshot with enough
+            common points, detection files that disagree with the target.
+    """
+    path = Path(path)
+    layout = detect_layout(path)
+    entries = dict(load_camchain(camchain) if isinstance(camchain, str | Path) else camchain)
+    for cam in (static_cam, dynamic_cam):
+        if cam not in entries:
+            raise ValueError(f"{camchain if isinstance(camchain, str | Path) else 'camchain'}: no entry '{cam}'")
+    pair = (entries[static_cam], entries[dynamic_cam])
+    geometry = load_target(target) if isinstance(target, str | Path) else target
+    detector = detector or detect_target
+
+    if layout == "detection_folder":
+        snapshots, geometry, _ = read_detection_folder(path, geometry, tolerance_ns)
+        where = (str(path / STATIC_DIR), str(path / DYNAMIC_DIR))
+    else:
+        if geometry is None:
+            raise ValueError(f"{path}: a target (Kalibr target.yaml) is needed to detect corners in images")
+        frames: ImageFolder | BagImagePairs
+        if layout == "image_folder":
+            frames = ImageFolder(path, tolerance_ns)
+            where = (str(path / STATIC_DIR), str(path / DYNAMIC_DIR))
+        else:
+            topics = []
+            for cam, override in ((static_cam, static_topic), (dynamic_cam, dynamic_topic)):
+                topic = override or entries[cam].rostopic
+                if not topic:
+                    raise ValueError(
+                        f"{camchain if isinstance(camchain, str | Path) else 'camchain'}: {cam} has no 'rostopic' "
+                        "field; needed to read a bag"
+                    )
+                topics.append(topic)
+            frames = BagImagePairs(path, topics[0], topics[1], joint_topic, tolerance_ns, joint_names)
+            where = (f"{path}: topic {topics[0]}", f"{path}: topic {topics[1]}")
+        snapshots = _detect_frames(
+            frames, len(frames), geometry, pair, (static_cam, dynamic_cam), detector, progress, f"detect {path.name}"
+        )
+    kept = _keep(snapshots, min_common_points, where, geometry)
+    return CalibrationDataset(
+        static_camera=pair[0].camera,
+        dynamic_camera=pair[1].camera,
+        target_points=geometry.points,
+        snapshots=kept,
+        source=str(path),
+    )

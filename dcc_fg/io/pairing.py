@@ -1,0 +1,144 @@
+"""Timestamp pairing shared by every reader (image folders, bags, detection folders).
+
+All timestamps are integers in nanoseconds.  The static camera (``cam0``) is the reference: a
+pair is reported at the static frame's timestamp.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+log = logging.getLogger(__name__)
+
+#: Default pairing tolerance: 5 ms (well below the frame period of a 30 Hz camera pair).
+DEFAULT_TOLERANCE_NS = 5_000_000
+
+
+@dataclass
+class Pairing:
+    """Result of :func:`pair_timestamps`.
+
+    Attributes:
+        pairs: ``(i, j)`` indices into the static and dynamic timestamp lists, sorted by the
+            static timestamp; each index appears at most once.
+        unpaired_static: static timestamps (ns) without a dynamic frame within the tolerance.
+        unpaired_dynamic: dynamic timestamps (ns) without a static frame within the tolerance.
+        tolerance_ns: the tolerance used.
+    """
+
+    pairs: list[tuple[int, int]] = field(default_factory=list)
+    unpaired_static: list[int] = field(default_factory=list)
+    unpaired_dynamic: list[int] = field(default_factory=list)
+    tolerance_ns: int = DEFAULT_TOLERANCE_NS
+
+    def summary(self, static_name: str = "cam0", dynamic_name: str = "cam1") -> str:
+        """One line: counts of pairs and unpaired frames per stream."""
+        return (
+            f"{len(self.pairs)} pairs within {self.tolerance_ns / 1e6:g} ms; unpaired frames: "
+            f"{len(self.unpaired_static)} of {static_name}, {len(self.unpaired_dynamic)} of {dynamic_name}"
+        )
+
+
+def pair_timestamps(
+    static_ns: Sequence[int] | NDArray[np.int64],
+    dynamic_ns: Sequence[int] | NDArray[np.int64],
+    tolerance_ns: int = DEFAULT_TOLERANCE_NS,
+) -> Pairing:
+    """Pair two timestamp lists one-to-one, closest pairs first.
+
+    Every candidate pair with ``|t_static - t_dynamic| <= tolerance_ns`` is considered in order
+    of increasing time difference and accepted if neither frame is paired yet (a greedy minimum
+    matching: exact for the usual case of one candidate per frame, and never pairs a frame twice).
+
+    Args:
+        static_ns: static-camera timestamps, ns (any order; duplicates allowed).
+        dynamic_ns: dynamic-camera timestamps, ns.
+        tolerance_ns: largest accepted time difference, ns (>= 0).
+
+    Returns:
+        The pairs and the unpaired timestamps of each stream (both sorted ascending).
+    """
+    if tolerance_ns < 0:
+        raise ValueError(f"tolerance_ns must be >= 0, got {tolerance_ns}")
+    s = np.asarray(static_ns, dtype=np.int64).reshape(-1)
+    d = np.asarray(dynamic_ns, dtype=np.int64).reshape(-1)
+    d_order = np.argsort(d, kind="stable")
+    d_sorted = d[d_order]
+    lo = np.searchsorted(d_sorted, s - tolerance_ns, side="left")
+    hi = np.searchsorted(d_sorted, s + tolerance_ns, side="right")
+    candidates: list[tuple[int, int, int]] = []
+    for i in range(s.size):
+        for k in range(int(lo[i]), int(hi[i])):
+            j = int(d_order[k])
+            candidates.append((abs(int(s[i]) - int(d[j])), i, j))
+    candidates.sort()
+    used_s = np.zeros(s.size, dtype=bool)
+    used_d = np.zeros(d.size, dtype=bool)
+    pairs = []
+    for _, i, j in candidates:
+        if not used_s[i] and not used_d[j]:
+            used_s[i] = used_d[j] = True
+            pairs.append((i, j))
+    pairs.sort(key=lambda p: (int(s[p[0]]), p[0]))
+    return Pairing(
+        pairs=pairs,
+        unpaired_static=sorted(int(x) for x in s[~used_s]),
+        unpaired_dynamic=sorted(int(x) for x in d[~used_d]),
+        tolerance_ns=int(tolerance_ns),
+    )
+
+
+def nearest_within(
+    query_ns: Sequence[int] | NDArray[np.int64],
+    reference_ns: Sequence[int] | NDArray[np.int64],
+    tolerance_ns: int,
+) -> NDArray[np.int64]:
+    """Index of the nearest reference timestamp for each query, or -1 if none is within tolerance.
+
+    Not one-to-one (several snapshots may take the same joint-state sample).
+    """
+    q = np.asarray(query_ns, dtype=np.int64).reshape(-1)
+    r = np.asarray(reference_ns, dtype=np.int64).reshape(-1)
+    out = np.full(q.size, -1, dtype=np.int64)
+    if r.size == 0:
+        return out
+    order = np.argsort(r, kind="stable")
+    rs = r[order]
+    pos = np.searchsorted(rs, q)
+    for n, (t, p) in enumerate(zip(q, pos, strict=True)):
+        best, best_dt = -1, tolerance_ns + 1
+        for k in (p - 1, p):
+            if 0 <= k < rs.size and abs(int(rs[k]) - int(t)) < best_dt:
+                best, best_dt = int(order[k]), abs(int(rs[k]) - int(t))
+        out[n] = best
+    return out
+
+
+def check_pairing(pairing: Pairing, n_static: int, n_dynamic: int, static_name: str, dynamic_name: str) -> None:
+    """Log the pairing summary; raise a ValueError naming both streams if nothing paired.
+
+    Args:
+        pairing: the result of :func:`pair_timestamps`.
+        n_static, n_dynamic: frame counts of the two streams.
+        static_name, dynamic_name: how to name the streams in messages (folder, bag topic).
+    """
+    if n_static == 0 or n_dynamic == 0:
+        empty = static_name if n_static == 0 else dynamic_name
+        raise ValueError(f"{empty}: no frames")
+    if not pairing.pairs:
+        s0, s1 = pairing.unpaired_static[0], pairing.unpaired_static[-1]
+        d0, d1 = pairing.unpaired_dynamic[0], pairing.unpaired_dynamic[-1]
+        raise ValueError(
+            f"timestamps never pair within {pairing.tolerance_ns} ns: {static_name} has {n_static} frames "
+            f"in [{s0}, {s1}] ns, {dynamic_name} has {n_dynamic} frames in [{d0}, {d1}] ns "
+            "(are the cameras hardware-synchronized? increase the pairing tolerance)"
+        )
+    if pairing.unpaired_static or pairing.unpaired_dynamic:
+        log.warning("%s", pairing.summary(static_name, dynamic_name))
+    else:
+        log.info("%s", pairing.summary(static_name, dynamic_name))
