@@ -206,7 +206,7 @@ def residuals(p: Problem, x: FloatArray) -> FloatArray:
     kin_free, thetas, T_st = unpack(p, x)
     out = []
     for i, m in enumerate(p.meas):
-        blocks, _ = bundle_residuals(p.layout, kin_free, thetas[i], T_st[i], m, p.cams, False)
+        blocks = bundle_residuals(p.layout, kin_free, thetas[i], T_st[i], m, p.cams, False)
         out.append(blocks[0][0].ravel() / PIXEL_SIGMA)
         out.append(blocks[1][0].ravel() / PIXEL_SIGMA)
     for j, value in zip(p.offsets, p.offset_values, strict=True):

@@ -301,7 +301,7 @@ def information_schur(
     for i, s in enumerate(data.snapshots):
         meas = snapshot_measurements(data, s)
         if formulation == "bundle":
-            blocks, _ = bundle_residuals(layout, kin, thetas[i], T_st[i], meas, cams, True)
+            blocks = bundle_residuals(layout, kin, thetas[i], T_st[i], meas, cams, True)
             local = [1, 2] if mode == "encoderless" else [2]
         else:
             assert pnp is not None
@@ -452,7 +452,7 @@ def calibrate(
     res_s, res_d = [], []
     for i, m in enumerate(meas):
         if opt.formulation == "bundle":
-            blocks, _ = bundle_residuals(layout, kin_free, thetas[i], T_st[i], m, cams, False)
+            blocks = bundle_residuals(layout, kin_free, thetas[i], T_st[i], m, cams, False)
             res_s.append(blocks[0][0])
             res_d.append(blocks[1][0])
         else:

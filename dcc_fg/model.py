@@ -140,7 +140,6 @@ class GimbalCalibration:
             if len(d[key]) != 6:
                 raise ValueError(f"{source}: '{key}' must have 6 entries [rx, ry, rz, tx, ty, tz]")
         cal = GimbalCalibration.from_parts(d["tau_s"], d["tau_d"], dh)
-        cal.n_joints = n
         if "tau_s_std" in d:
             std = list(d["tau_s_std"]) + list(d["tau_d_std"]) + [x for row in d.get("dh_std", []) for x in row]
             cal.kin_std = np.array([np.nan if s is None else float(s) for s in std])

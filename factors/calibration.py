@@ -174,7 +174,7 @@ def bundle_residuals(
     meas: SnapshotMeasurements,
     cams: tuple[CameraModel, CameraModel],
     want_jacobians: bool,
-) -> tuple[list[tuple[FloatArray, list[FloatArray]]], list[str]]:
+) -> list[tuple[FloatArray, list[FloatArray]]]:
     """Unwhitened residual blocks ``h(x) - z`` of the bundle formulation and their Jacobians.
 
     Returns ``[(r_s, [J_kin, J_theta, J_pose]), (r_d, [...])]`` with Jacobian widths
@@ -208,7 +208,7 @@ def bundle_residuals(
         blocks.append((uv_d - meas.z_dynamic, [J_kin, J_theta, J_pose]))
     else:
         blocks.append((uv_d - meas.z_dynamic, []))
-    return blocks, ["kin", "theta", "pose"]
+    return blocks
 
 
 def two_way_residuals(
@@ -280,7 +280,7 @@ def bundle_factor(
         kin_free = values.atVector(kin_key) if kin_key is not None else None
         theta = values.atVector(theta_key) if theta_key is not None else theta_const
         T_st = values.atPose3(pose_key).matrix()
-        blocks, _ = bundle_residuals(layout, kin_free, theta, T_st, meas, cams, H is not None)
+        blocks = bundle_residuals(layout, kin_free, theta, T_st, meas, cams, H is not None)
         if H is None:
             return _finish(blocks, sigma, robust, None)
         return _finish(_select(blocks, keep), sigma, robust, H)

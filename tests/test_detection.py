@@ -7,11 +7,11 @@ when it is absent.
 from __future__ import annotations
 
 import logging
-from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
+from conftest import shared_data as real
 
 from dcc_fg.data import Observation
 from dcc_fg.detection import (
@@ -23,16 +23,6 @@ from dcc_fg.detection import (
     to_gray8,
 )
 from dcc_fg.targets import TargetGeometry
-
-DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
-
-
-def real(sub: str) -> Path:
-    path = DATA / sub
-    if not path.exists():
-        pytest.skip(f"real data {path} is not available (../shared/data is absent on a fresh clone)")
-    return path
-
 
 # ---------------------------------------------------------------------------------------------
 # Synthetic renderings (4x supersampled; pixel centres at integer coordinates like OpenCV)

@@ -13,6 +13,7 @@ from types import SimpleNamespace
 import cv2
 import numpy as np
 import pytest
+from conftest import shared_data as real
 
 import dcc_fg.io.folders as folders
 from dcc_fg.data import Observation
@@ -24,16 +25,6 @@ from dcc_fg.io.folders import FramePair, ImageFolder, read_joints_csv, write_ima
 from dcc_fg.io.pairing import check_pairing, nearest_within, pair_timestamps
 from dcc_fg.targets import TargetGeometry
 from factors.camera import CameraModel
-
-DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
-
-
-def real(sub: str) -> Path:
-    path = DATA / sub
-    if not path.exists():
-        pytest.skip(f"real data {path} is not available (../shared/data is absent on a fresh clone)")
-    return path
-
 
 T0 = 1_700_000_000_000_000_000  # ns
 PERIOD = 50_000_000  # 20 Hz

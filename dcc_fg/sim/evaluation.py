@@ -147,7 +147,7 @@ def cramer_rao_bound(
     layout = KinLayout(truth.kin.copy(), np.ones(nk, dtype=bool), L)
     cams = (data.static_camera, data.dynamic_camera)
     for i, s in enumerate(data.snapshots):
-        blocks, _ = bundle_residuals(
+        blocks = bundle_residuals(
             layout, truth.kin, thetas_true[i], T_st_true[i], snapshot_measurements(data, s), cams, True
         )
         J = np.zeros((0, n))
