@@ -44,6 +44,7 @@ from typing import Any
 import cv2
 import numpy as np
 import yaml
+from scipy.spatial.transform import Rotation
 
 ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
@@ -188,7 +189,7 @@ def _child(mode: str, workdir: Path, bag: str) -> dict[str, Any]:
         if rc == 0:
             cal = load_calibration(workdir / "out" / "calibration.yaml")
             err = np.linalg.inv(chain.se3_from_tau(TAU_DS)) @ cal.T_ds(np.zeros(0))
-            out["T_ds_rot_err_mrad"] = float(np.linalg.norm(cv2.Rodrigues(err[:3, :3])[0]) * 1e3)
+            out["T_ds_rot_err_mrad"] = float(Rotation.from_matrix(err[:3, :3]).magnitude() * 1e3)
             out["T_ds_trans_err_mm"] = float(np.linalg.norm(err[:3, 3]) * 1e3)
             out["snapshots"] = int(cal.statistics.get("snapshots", 0))
     out["time_s"] = time.perf_counter() - t
