@@ -5,8 +5,9 @@ d = right / cam1), so dcc-fg's bundle calibration with the intrinsics held is th
 likelihood problem ``cv2.stereoCalibrate(..., CALIB_FIX_INTRINSIC)`` solves: both must land on the
 same ``T_ds`` when given the same corners.
 
-* OpenCV's stereo sample (13 pairs, 9x6 chessboard, 0.025 m squares): intrinsics from
-  ``cv2.calibrateCamera`` per camera (k3 fixed at 0: our radtan model has 4 coefficients), then
+* OpenCV's stereo sample (13 pairs, 9x6 chessboard, 0.025 m squares): intrinsics of each camera
+  from :func:`dcc_fg.intrinsics.calibrate_intrinsics` (``cv2.calibrateCamera`` with k3 fixed at 0:
+  our radtan model has 4 coefficients), then
   both calibrations on the same corners; agreement within 1 mrad and 1 % of the baseline.
 * EuRoC cam_april (30 stereo frames of yac AprilGrid detections) with EuRoC's published
   intrinsics, against EuRoC's published ``T_c1c0 = inv(T_BS1) T_BS0``: within 2 mrad and 2 mm and
@@ -32,6 +33,7 @@ from scipy.spatial.transform import Rotation
 from dcc_fg.calibrate import CalibrationOptions, CalibrationResult, calibrate
 from dcc_fg.data import CalibrationDataset, Observation, Snapshot, common_corners
 from dcc_fg.detection import detect_checkerboard
+from dcc_fg.intrinsics import View, calibrate_intrinsics
 from dcc_fg.io.camchain import CamchainEntry
 from dcc_fg.io.dataset import load_dataset
 from dcc_fg.model import GimbalCalibration
@@ -89,7 +91,7 @@ def T_ds_sigma(res: CalibrationResult) -> tuple[float, float]:
 
 
 def opencv_stereo_dataset(root: Path) -> CalibrationDataset:
-    """Detect the 9x6 board in all 13 pairs; intrinsics of each camera from cv2.calibrateCamera."""
+    """Detect the 9x6 board in all 13 pairs; intrinsics of each camera from its own 13 views."""
     obs_l, obs_r = [], []
     for k in OPENCV_PAIRS:
         for side, out in (("left", obs_l), ("right", obs_r)):
@@ -98,13 +100,10 @@ def opencv_stereo_dataset(root: Path) -> CalibrationDataset:
             obs = detect_checkerboard(img, CHESSBOARD)
             assert len(obs) == 54, f"{side}{k}.jpg: board not found"
             out.append(obs)
-    cams = []
-    for obs in (obs_l, obs_r):
-        obj = [CHESSBOARD.points[o.ids].astype(np.float32) for o in obs]
-        img = [o.pixels.astype(np.float32) for o in obs]
-        _, K, dist, _, _ = cv2.calibrateCamera(obj, img, (640, 480), None, None, flags=cv2.CALIB_FIX_K3)
-        d = dist.ravel()
-        cams.append(CameraModel((K[0, 0], K[1, 1], K[0, 2], K[1, 2]), "radtan", tuple(d[:4]), (640, 480)))
+    cams = [
+        calibrate_intrinsics([View(k, o, "") for k, o in enumerate(obs)], CHESSBOARD, (640, 480)).camera
+        for obs in (obs_l, obs_r)
+    ]
     snaps = [Snapshot(i, a, b) for i, (a, b) in enumerate(zip(obs_l, obs_r, strict=True))]
     return CalibrationDataset(cams[0], cams[1], CHESSBOARD.points, snaps, str(root))
 
