@@ -31,12 +31,13 @@ from conftest import shared_data as real
 from scipy.spatial.transform import Rotation
 
 from dcc_fg.calibrate import CalibrationOptions, CalibrationResult, calibrate
+from dcc_fg.cli import main
 from dcc_fg.data import CalibrationDataset, Observation, Snapshot, common_corners
 from dcc_fg.detection import detect_checkerboard
 from dcc_fg.intrinsics import View, calibrate_intrinsics
-from dcc_fg.io.camchain import CamchainEntry
+from dcc_fg.io.camchain import CamchainEntry, camchain_to_yaml
 from dcc_fg.io.dataset import load_dataset
-from dcc_fg.model import GimbalCalibration
+from dcc_fg.model import GimbalCalibration, load_calibration
 from dcc_fg.targets import TargetGeometry
 from factors.camera import CameraModel
 
@@ -220,3 +221,18 @@ def test_common_corners_keeps_ids_aligned() -> None:
     assert out.static.ids.tolist() == [2, 9] and out.dynamic.ids.tolist() == [2, 9]
     assert out.static.pixels.tolist() == [[2.0, 3.0], [6.0, 7.0]]
     assert out.timestamp_ns == 7
+
+
+def test_cli_calibrates_l0_without_gimbal_yaml(euroc: tuple[CalibrationDataset, np.ndarray], tmp_path: Path) -> None:
+    """``dcc-fg calibrate DATA --camchain C --joints 0`` needs no gimbal.yaml and gives calibrate()'s T_ds."""
+    data, _ = euroc
+    chain = {name: CamchainEntry(cam) for name, cam in (("cam0", data.static_camera), ("cam1", data.dynamic_camera))}
+    camchain = tmp_path / "camchain.yaml"
+    camchain.write_text(camchain_to_yaml(chain))
+    folder = real("euroc_aprilgrid") / "calib" / "cam_april"
+    out = tmp_path / "out"
+    assert main(["calibrate", str(folder), "--camchain", str(camchain), "--joints", "0", "--out", str(out)]) == 0
+    got = load_calibration(out / "calibration.yaml")
+    ref = calibrate(data, L0, CalibrationOptions(compute_covariance=False)).T_ds(0)
+    rot, trans = rotation_translation_error(got.T_ds(np.zeros(0)), ref)
+    assert rot < 1e-7 and trans < 1e-7
