@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+import numpy as np
+
 from dcc_fg.calibrate import CalibrationOptions, calibrate
 from dcc_fg.io.outputs import write_joint_angles_csv, write_json
 from dcc_fg.model import GimbalCalibration, load_calibration
@@ -30,9 +32,13 @@ def _write(out: Path, result, stats_name: str = "summary.json") -> None:  # noqa
 
 def run_calibrate(args: argparse.Namespace) -> int:
     """Calibrate from ``args.data`` with the initial kinematics of ``--gimbal``."""
-    if args.gimbal is None:
+    if args.gimbal is None and getattr(args, "joints", None) == 0:
+        # L = 0 needs no initial values: tau_s is the gauge and tau_d starts from PnP (calibrate.zero_joint_init)
+        initial = GimbalCalibration(np.zeros(12), 0)
+    elif args.gimbal is None:
         raise ValueError("--gimbal is required (automatic initialization without a gimbal.yaml is not available yet)")
-    initial: GimbalCalibration = load_calibration(args.gimbal)
+    else:
+        initial = load_calibration(args.gimbal)
     data = _load(args.data, args.camchain, args.target)
     opts = CalibrationOptions(
         mode=args.mode,
