@@ -1,4 +1,4 @@
-"""Command-line interface: ``dcc-fg demo | calibrate | validate``."""
+"""Command-line interface: ``dcc-fg demo | calibrate | validate | simulate``."""
 
 from __future__ import annotations
 
@@ -91,6 +91,16 @@ def build_parser() -> argparse.ArgumentParser:
     v.add_argument("--target", help="Kalibr target YAML")
     v.add_argument("--out", default="dcc_fg_validation", help="output folder")
     v.set_defaults(func=_cmd_validate)
+
+    s = sub.add_parser(
+        "simulate",
+        help="write simulated data sets with ground truth (rendered calibration images)",
+        description="Simulated data sets with ground truth. See 'dcc-fg simulate calibration --help'.",
+    )
+    s_sub = s.add_subparsers(dest="what", required=True)
+    from dcc_fg.sim.write_dataset import add_simulate_calibration_parser
+
+    add_simulate_calibration_parser(s_sub)
     return p
 
 
