@@ -111,7 +111,9 @@ def _tag_cells(n_tags: int) -> NDArray[np.uint8]:
     dictionary = cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_APRILTAG_36h11)
     cells = TAG36H11_BITS + 2 * APRILGRID_BORDER_BITS
     if n_tags > dictionary.bytesList.shape[0]:
-        raise ValueError(f"an AprilGrid of {n_tags} tags needs more than the {dictionary.bytesList.shape[0]} tag36h11 ids")
+        raise ValueError(
+            f"an AprilGrid of {n_tags} tags needs more than the {dictionary.bytesList.shape[0]} tag36h11 ids"
+        )
     out = np.empty((n_tags, cells, cells), dtype=np.uint8)
     for k in range(n_tags):
         img = cv2.aruco.generateImageMarker(dictionary, k, cells, borderBits=APRILGRID_BORDER_BITS)

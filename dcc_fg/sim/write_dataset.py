@@ -317,13 +317,18 @@ def add_simulate_calibration_parser(sub: Any) -> None:
         help="image folder (cam0/<ns>.png, cam1/<ns>.png), ROS1 .bag or ROS2 bag folder; image topics "
         f"{STATIC_TOPIC} and {DYNAMIC_TOPIC} (default folder)",
     )
-    p.add_argument("--storage", choices=["sqlite3", "mcap"], default="sqlite3", help="ROS2 bag storage (default sqlite3)")
+    p.add_argument(
+        "--storage", choices=["sqlite3", "mcap"], default="sqlite3", help="ROS2 bag storage (default sqlite3)"
+    )
     p.add_argument("--out", required=True, help="output folder (created; must not already hold the image data)")
     p.add_argument("--seed", type=int, default=0, help="random seed of the scene and the image noise (default 0)")
     p.add_argument("--snapshots", type=int, default=81, help="number of image pairs (snapshots), default 81")
     p.add_argument("--joints", type=int, default=2, choices=[0, 1, 2, 3], help="number of gimbal joints L (default 2)")
     p.add_argument(
-        "--noise", type=float, default=RenderConfig.noise_sigma, help="image noise sigma, grey levels of 255 (default 2)"
+        "--noise",
+        type=float,
+        default=RenderConfig.noise_sigma,
+        help="image noise sigma, grey levels of 255 (default 2)",
     )
     p.add_argument(
         "--blur", type=float, default=RenderConfig.blur_sigma_px, help="Gaussian blur sigma, pixels (default 0.6)"
