@@ -21,13 +21,17 @@ from dcc_fg.report import run_summary_table
 MIN_COMMON_POINTS = 8
 
 
+def _stderr_is_terminal() -> bool:
+    return sys.stderr.isatty()
+
+
 def _load_options(args: argparse.Namespace, report: dict[str, Any]) -> dict[str, Any]:
     """Reader options from the command line: progress bar (stderr, only on a terminal and without
     ``--quiet``), pairing tolerance (``--sync-tolerance`` ms -> ns), ``--min-common-points``, and
     the dict that receives the reader's counts for the summary."""
     report["min_common_points"] = int(getattr(args, "min_common_points", MIN_COMMON_POINTS))
     return {
-        "progress": not getattr(args, "quiet", False) and sys.stderr.isatty(),
+        "progress": not getattr(args, "quiet", False) and _stderr_is_terminal(),
         "tolerance_ns": int(round(float(getattr(args, "sync_tolerance", 5.0)) * 1e6)),
         "min_common_points": report["min_common_points"],
         "report": report,

@@ -116,3 +116,23 @@ def test_malformed_yaml(small: RenderedCalibration, tmp_path, capsys) -> None:  
     _fails(
         _args(small, small.data, tmp_path / "out", gimbal=gimbal), tmp_path / "out", capsys, "YAML", "gimbal_bad.yaml"
     )
+
+
+@pytest.mark.parametrize("quiet", [False, True])
+def test_progress_bar_on_a_terminal_unless_quiet(
+    small: RenderedCalibration,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+    quiet: bool,
+) -> None:
+    """The bar goes to stderr on a terminal; --quiet turns it off.  (A run that stops after detection:
+    no pair has 1000 common corners, which also checks --min-common-points.)"""
+    import dcc_fg.pipeline
+
+    monkeypatch.setattr(dcc_fg.pipeline, "_stderr_is_terminal", lambda: True)
+    argv = _args(small, small.data, tmp_path / "out") + ["--min-common-points", "1000"] + (["--quiet"] if quiet else [])
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert "at least 1000 common target points" in err
+    assert ("detect images:" in err and "pair/s" in err) != quiet
