@@ -131,6 +131,13 @@ def test_opencv_stereo_matches_stereo_calibrate() -> None:
     assert 0.05 < baseline < 0.2  # a stereo rig, not a degenerate solution
     assert rot < 1e-3
     assert trans < 0.01 * baseline
+    # L = 0: tau_s is the whole gauge, so every tau_d entry is reported observable with a 1-sigma
+    cal = res.calibration
+    assert cal.observable is not None and cal.kin_std is not None
+    assert np.all(cal.observable[6:12]) and not np.any(cal.observable[:6])
+    assert np.all(np.isfinite(cal.kin_std[6:12]))
+    # its translation sigmas are those of T_ds's translation (tau_s = identity here)
+    assert np.isclose(np.sqrt(np.mean(cal.kin_std[9:12] ** 2)), s_trans, rtol=0.5)
 
 
 def test_l0_start_does_not_depend_on_initial_tau_d() -> None:
