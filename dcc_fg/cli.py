@@ -10,7 +10,7 @@ from pathlib import Path
 def _cmd_demo(args: argparse.Namespace) -> int:
     from dcc_fg.demo import run_demo
 
-    run_demo(Path(args.out), seed=args.seed, n_joints=args.joints)
+    run_demo(Path(args.out), seed=args.seed, n_joints=args.joints, report=getattr(args, "report", False))
     return 0
 
 
@@ -44,6 +44,7 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--out", default="dcc_fg_demo", help="output folder (default: ./dcc_fg_demo)")
     d.add_argument("--seed", type=int, default=0, help="random seed of the simulation (default 0)")
     d.add_argument("--joints", type=int, default=2, choices=[0, 1, 2, 3], help="number of gimbal joints L (default 2)")
+    d.add_argument("--report", action="store_true", help="also write OUT/report.pdf (tables and figures)")
     d.set_defaults(func=_cmd_demo)
 
     c = sub.add_parser(
@@ -78,6 +79,9 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--robust", choices=["huber", "cauchy"], default=None, help="per-corner robust loss")
     c.add_argument("--robust-k", type=float, default=2.0, help="robust loss threshold in pixels (default 2)")
     c.add_argument("--out", default="dcc_fg_calibration", help="output folder")
+    c.add_argument(
+        "--report", action="store_true", help="also save the figures (OUT/calibration_*.png) and OUT/report.pdf"
+    )
     c.set_defaults(func=_cmd_calibrate)
 
     v = sub.add_parser(
@@ -90,6 +94,9 @@ def build_parser() -> argparse.ArgumentParser:
     v.add_argument("--camchain", help="Kalibr camchain YAML (default: the intrinsics stored in the calibration)")
     v.add_argument("--target", help="Kalibr target YAML")
     v.add_argument("--out", default="dcc_fg_validation", help="output folder")
+    v.add_argument(
+        "--report", action="store_true", help="also save the figures (OUT/calibration_*.png) and OUT/report.pdf"
+    )
     v.set_defaults(func=_cmd_validate)
     return p
 

@@ -41,7 +41,9 @@ def run_calibrate(args: argparse.Namespace) -> int:
         robust=args.robust,
         robust_k=args.robust_k,
     )
-    _write(Path(args.out), calibrate(data, initial, opts))
+    result = calibrate(data, initial, opts)
+    _write(Path(args.out), result)
+    _report(Path(args.out), result, data, args)
     return 0
 
 
@@ -49,5 +51,18 @@ def run_validate(args: argparse.Namespace) -> int:
     """Hold ``--calibration`` fixed and estimate the joint angles of ``args.data``."""
     cal = load_calibration(args.calibration)
     data = _load(args.data, args.camchain, args.target)
-    _write(Path(args.out), calibrate(data, cal, CalibrationOptions(mode="validate")))
+    result = calibrate(data, cal, CalibrationOptions(mode="validate"))
+    _write(Path(args.out), result)
+    _report(Path(args.out), result, data, args)
     return 0
+
+
+def _report(out: Path, result, data, args: argparse.Namespace) -> None:  # noqa: ANN001
+    """With ``--report``: the calibration figures as ``OUT/calibration_*.png`` and ``OUT/report.pdf``."""
+    if not getattr(args, "report", False):
+        return
+    from dcc_fg.plots.output import write_calibration_outputs
+
+    text = calibration_table(result.calibration.statistics)
+    paths = write_calibration_outputs(out, result, text, target_points=data.target_points)
+    print("wrote " + ", ".join(str(p) for p in paths))

@@ -1,4 +1,4 @@
-"""Text summary tables (figures come with the reporting issue)."""
+"""Text summary tables, and the figures of :mod:`dcc_fg.plots` re-exported."""
 
 from __future__ import annotations
 
@@ -166,3 +166,37 @@ def demo_table(s: dict[str, Any]) -> str:
         )
     )
     return "\n\n".join(out)
+
+
+# Figures (matplotlib, pyplot-free) live in dcc_fg.plots; re-exported here so callers find them with the tables.
+from dcc_fg.plots import (  # noqa: E402
+    calibration_figures,
+    chain_figure,
+    coverage_figure,
+    error_over_distance_figure,
+    joint_angles_figure,
+    parameter_figure,
+    residual_figure,
+    save_figure,
+    snapshot_error_figure,
+    trajectory_topview_figure,
+    write_calibration_outputs,
+    write_report_pdf,
+)
+
+__all__ = [
+    "calibration_figures",
+    "calibration_table",
+    "chain_figure",
+    "coverage_figure",
+    "demo_table",
+    "error_over_distance_figure",
+    "joint_angles_figure",
+    "parameter_figure",
+    "residual_figure",
+    "save_figure",
+    "snapshot_error_figure",
+    "trajectory_topview_figure",
+    "write_calibration_outputs",
+    "write_report_pdf",
+]

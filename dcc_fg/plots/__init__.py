@@ -13,6 +13,7 @@ from dcc_fg.plots.calibration import (
 )
 from dcc_fg.plots.chain3d import chain_figure, chain_frames
 from dcc_fg.plots.common import save_figure
+from dcc_fg.plots.output import write_calibration_outputs
 from dcc_fg.plots.pdf import text_page, write_report_pdf
 from dcc_fg.plots.vio import (
     distance_travelled,
@@ -35,5 +36,6 @@ __all__ = [
     "snapshot_error_figure",
     "text_page",
     "trajectory_topview_figure",
+    "write_calibration_outputs",
     "write_report_pdf",
 ]

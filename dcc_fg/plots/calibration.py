@@ -154,7 +154,9 @@ def snapshot_error_figure(
     ax.set_ylim(0, 1.35 * np.nanmax([*snapshot_rms(result, "static"), *snapshot_rms(result, "dynamic"), sigma]))
 
     err = T_ds_errors(truth, thetas_true, result.calibration, result.joint_angles) if have_truth else None
-    for r, (name, sl, scale, unit) in enumerate((("rotation", slice(0, 3), 1e3, "mrad"), ("translation", slice(3, 6), 1e3, "mm"))):
+    for r, (name, sl, scale, unit) in enumerate(
+        (("rotation", slice(0, 3), 1e3, "mrad"), ("translation", slice(3, 6), 1e3, "mm"))
+    ):
         ax = axes[1 + r]
         if err is not None:
             e = np.linalg.norm(err[:, sl], axis=1) * scale
@@ -277,8 +279,10 @@ def parameter_figure(cal: GimbalCalibration, truth: GimbalCalibration | None = N
     is_angle = chain.kin_is_angle(cal.n_joints)
     status = parameter_status(cal)
     std = cal.kin_std if cal.kin_std is not None else np.full(len(cal.kin), np.nan)
-    groups = [("angles", np.flatnonzero(is_angle), np.degrees, "deg", 1e3, "mrad"),
-              ("lengths", np.flatnonzero(~is_angle), lambda v: v * 1e3, "mm", 1e3, "mm")]
+    groups = [
+        ("angles", np.flatnonzero(is_angle), np.degrees, "deg", 1e3, "mrad"),
+        ("lengths", np.flatnonzero(~is_angle), lambda v: v * 1e3, "mm", 1e3, "mm"),
+    ]
     n_max = max(len(g[1]) for g in groups)
     fig = new_figure(11.0, 0.28 * n_max * 2 + 2.0)
     axes = fig.subplots(2, 2, gridspec_kw={"height_ratios": [len(g[1]) for g in groups]})
@@ -297,8 +301,14 @@ def parameter_figure(cal: GimbalCalibration, truth: GimbalCalibration | None = N
                 d = cal.kin[k] - truth.kin[k]
                 d = _wrap(d) if unit == "deg" else d
                 ax_d.errorbar(
-                    d * dscale, y[m], xerr=np.nan_to_num(std[k]) * dscale, fmt=style["fmt"],
-                    color=style["color"], ms=5, capsize=3, label=st,
+                    d * dscale,
+                    y[m],
+                    xerr=np.nan_to_num(std[k]) * dscale,
+                    fmt=style["fmt"],
+                    color=style["color"],
+                    ms=5,
+                    capsize=3,
+                    label=st,
                 )
             else:
                 s = np.where(np.isfinite(std[k]), std[k] * dscale, 0.0)
@@ -358,5 +368,3 @@ def calibration_figures(
         "parameters": parameter_figure(result.calibration, truth),
         "chain": chain_figure(result.calibration, np.asarray(theta, float), T_st=T_st, target_points=target_points),
     }
-
-

@@ -24,7 +24,9 @@ def text_page(text: str, title: str = "") -> list[Figure]:
         fig.set_layout_engine("none")
         if title:
             fig.text(0.05, 0.97, title, fontsize=13, fontweight="bold", va="top")
-        fig.text(0.05, 0.93, "\n".join(lines[start : start + LINES_PER_PAGE]), family="monospace", fontsize=6.5, va="top")
+        fig.text(
+            0.05, 0.93, "\n".join(lines[start : start + LINES_PER_PAGE]), family="monospace", fontsize=7.5, va="top"
+        )
         pages.append(fig)
     return pages
 

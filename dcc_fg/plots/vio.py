@@ -74,13 +74,17 @@ def joint_angles_figure(
     if ground_truth is not None:
         series["ground truth"] = (t, np.asarray(ground_truth, float))
     for name, e in estimates.items():
-        series[name] = (np.asarray(e[0], float), np.asarray(e[1], float)) if isinstance(e, tuple) else (t, np.asarray(e, float))
+        series[name] = (
+            (np.asarray(e[0], float), np.asarray(e[1], float)) if isinstance(e, tuple) else (t, np.asarray(e, float))
+        )
     if not series:
         raise ValueError("joint_angles_figure: nothing to draw")
     Ls = {th.shape[1] if th.ndim == 2 else -1 for _, th in series.values()}
     for name, (ts, th) in series.items():
         if th.ndim != 2 or th.shape[0] != ts.shape[0]:
-            raise ValueError(f"joint_angles_figure: {name} must be (N, L) with N = len(t), got {th.shape} vs {ts.shape}")
+            raise ValueError(
+                f"joint_angles_figure: {name} must be (N, L) with N = len(t), got {th.shape} vs {ts.shape}"
+            )
     if len(Ls) != 1 or Ls == {0}:
         raise ValueError(f"joint_angles_figure: all series need the same number of joints L >= 1, got {sorted(Ls)}")
     L = Ls.pop()
