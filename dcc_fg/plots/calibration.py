@@ -73,7 +73,9 @@ def residual_figure(result: CalibrationResult, pixel_sigma: float | None = None)
             for ax in (ax_s, ax_h):
                 ax.text(0.5, 0.5, f"no {cam} residuals", ha="center", va="center", transform=ax.transAxes)
             continue
-        ax_s.scatter(r[:, 0], r[:, 1], s=3, alpha=0.35, color=CAMERA_COLORS[cam], linewidths=0, label="corners")
+        ax_s.scatter(
+            r[:, 0], r[:, 1], s=3, alpha=0.35, color=CAMERA_COLORS[cam], linewidths=0, label="corners", rasterized=True
+        )
         norms = np.linalg.norm(r, axis=1)
         for k, ls in zip((1, 2, 3), ("-", "--", ":"), strict=True):
             inside = float(np.mean(norms <= k * sigma))

@@ -96,7 +96,8 @@ def _draw(
     ax.set_ylabel("z_s (m)")
     ax.set_zlabel("-y_s (m)")
     ax.view_init(elev=20, azim=-60)
-    ax.legend(loc="upper left", fontsize=8)
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend(loc="upper left", fontsize=8)
 
 
 def chain_figure(
