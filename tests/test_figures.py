@@ -110,7 +110,8 @@ def test_coverage_figure_panels(small) -> None:  # noqa: ANN001
     assert all(len(_scatters(ax)[0].get_offsets()) == K for ax in panels)
     fig1 = report.coverage_figure(res, joint_angles=rng.uniform(-1, 1, (K, 1)))
     (ax1,) = [ax for ax in fig1.axes if _scatters(ax)]
-    assert len(_scatters(ax1)[0].get_offsets()) == K and len(ax1.patches) > 0  # histogram bars
+    assert len(_scatters(ax1)[0].get_offsets()) == K
+    assert len(fig1.axes[0].patches) > 0 and fig1.axes[0].get_ylabel() == "snapshots"  # histogram bars
 
 
 def test_parameter_figure_marks_status(small) -> None:  # noqa: ANN001

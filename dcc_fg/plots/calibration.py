@@ -209,7 +209,7 @@ def snapshot_error_figure(
 def coverage_figure(result: CalibrationResult, joint_angles: FloatArray | None = None) -> Figure:
     """Which part of the joint space the snapshots cover, coloured by each snapshot's RMS residual.
 
-    L = 1: histogram of theta_1 with the snapshots as coloured points below it; L = 2: theta_1 vs
+    L = 1: histogram of theta_1 above the snapshots' RMS residual against theta_1; L = 2: theta_1 vs
     theta_2; L >= 3: one panel per pair of joints. Angles in degrees.
     """
     th = np.degrees(result.joint_angles if joint_angles is None else np.asarray(joint_angles, float))
@@ -223,13 +223,15 @@ def coverage_figure(result: CalibrationResult, joint_angles: FloatArray | None =
         return fig
     norm_kw = {"cmap": "viridis", "vmin": float(np.nanmin(rms)), "vmax": float(np.nanmax(rms))}
     if L == 1:
-        fig = new_figure(7.0, 4.0)
-        ax = fig.add_subplot()
-        ax.hist(th[:, 0], bins=min(30, max(5, len(th) // 3)), color="0.8", edgecolor="0.4")
-        sc = ax.scatter(th[:, 0], np.zeros(len(th)), c=rms, s=25, zorder=3, **norm_kw)
-        ax.set_xlabel("θ_1 (deg)")
-        ax.set_ylabel("snapshots")
-        fig.colorbar(sc, ax=ax, label="RMS/axis residual (px)")
+        fig = new_figure(7.5, 5.5)
+        ax_h, ax_s = fig.subplots(2, 1, sharex=True, height_ratios=[2, 1.4])
+        ax_h.hist(th[:, 0], bins=min(30, max(5, len(th) // 3)), color="0.8", edgecolor="0.4")
+        ax_h.set_ylabel("snapshots")
+        sc = ax_s.scatter(th[:, 0], rms, c=rms, s=25, edgecolors="k", linewidths=0.3, **norm_kw)
+        ax_s.set_ylabel("RMS/axis (px)")
+        ax_s.set_xlabel("θ_1 (deg)")
+        ax_s.grid(alpha=0.3)
+        fig.colorbar(sc, ax=[ax_h, ax_s], label="RMS/axis residual (px)")
         fig.suptitle(f"Joint-space coverage: {len(th)} snapshots")
         return fig
     pairs = [(i, j) for i in range(L) for j in range(i + 1, L)]
