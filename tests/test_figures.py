@@ -143,10 +143,10 @@ def test_chain_figure_frames(L: int) -> None:
     theta = np.linspace(0.2, 0.5, L)
     fig = report.chain_figure(truth, theta)
     (ax,) = fig.axes
-    n_frames = L + 3 if L > 0 else 4  # s, b, 1..L-1, e, d
+    n_frames = L + 3 if L > 0 else 3  # s, b, 1..L-1, e, d (b and e coincide when L = 0)
     assert len(ax.lines) == 3 * n_frames + 1 + L  # triads, the chain polyline, the joint axes
     labels = {t.get_text() for t in ax.texts}
-    assert labels == {"s", "b", "e", "d", *(str(i) for i in range(1, L))}
+    assert labels == ({"s", "b", "e", "d", *(str(i) for i in range(1, L))} if L else {"s", "b = e", "d"})
     frames = chain3d.chain_frames(truth, theta)
     assert np.allclose(chain.inv_se3(frames["d"]) @ frames["s"], truth.T_ds(theta))
     # the d triad starts at the dynamic camera's origin in s (plotted as x, z, -y)
@@ -259,3 +259,39 @@ def test_calibrate_cli_report(small, tmp_path: Path, monkeypatch: pytest.MonkeyP
     )
     assert pipeline.run_calibrate(args) == 0
     assert not list(out2.glob("*.png")) and not (out2 / "report.pdf").exists()
+
+
+def test_figures_on_real_euroc_stereo_pair() -> None:
+    """The EuRoC VI-sensor stereo pair (real AprilGrid detections) as an L = 0 cluster."""
+    from dcc_fg.io.camchain import CamchainEntry
+    from dcc_fg.io.dataset import load_dataset
+    from dcc_fg.model import GimbalCalibration
+    from dcc_fg.plots.calibration import noise_sigma
+    from factors.camera import CameraModel
+    from tests.conftest import shared_data
+
+    root = shared_data("euroc_aprilgrid/calib/cam_april")
+    # intrinsics from EuRoC's sensor.yaml (cam0, cam1)
+    c0 = CameraModel(
+        (458.654, 457.296, 367.215, 248.375), "radtan", (-0.28340811, 0.07395907, 1.9359e-4, 1.76e-5), (752, 480)
+    )
+    c1 = CameraModel(
+        (457.587, 456.134, 379.999, 255.238), "radtan", (-0.28368365, 0.07451284, -1.0473e-4, -3.56e-5), (752, 480)
+    )
+    data = load_dataset(root, {"cam0": CamchainEntry(c0), "cam1": CamchainEntry(c1)}, progress=False)
+    init = GimbalCalibration.from_parts(
+        np.zeros(6), [0, 0, 0, -0.1, 0, 0], np.zeros((0, 3)), static_camera=c0, dynamic_camera=c1
+    )
+    res = calibrate(data, init, CalibrationOptions())
+    figs = report.calibration_figures(res, target_points=data.target_points)
+    fig = figs["residuals"]
+    n_corners = [sum(len(r) for r in rs) for rs in (res.residuals_static, res.residuals_dynamic)]
+    assert [len(_scatters(fig.axes[c])[0].get_offsets()) for c in (0, 1)] == n_corners
+    # robust noise estimate: sub-pixel corners on real images, below the RMS that the outlier corners inflate
+    sigma, source = noise_sigma(res)
+    allr = np.concatenate(res.residuals_static + res.residuals_dynamic)
+    assert "MAD" in source and 0.05 < sigma < 0.5 and sigma < np.sqrt(np.mean(allr**2))
+    assert "rigid pair" in _labels(figs["coverage"])
+    assert {t.get_text() for t in figs["chain"].axes[0].texts} == {"s = b = e", "d"}
+    ax_r = figs["snapshot_errors"].axes[0]
+    assert sum(len(ln.get_xdata()) == len(data.snapshots) for ln in ax_r.lines) == 2

@@ -52,6 +52,18 @@ def joint_axes(cal: GimbalCalibration, theta: FloatArray) -> list[tuple[FloatArr
     return out
 
 
+def merge_coincident(frames: dict[str, FloatArray], tol: float = 1e-9) -> dict[str, FloatArray]:
+    """Frames with the same pose drawn once, labelled ``"b = e"`` (e.g. base and end effector when L = 0)."""
+    out: dict[str, FloatArray] = {}
+    for name, T in frames.items():
+        same = next((k for k, U in out.items() if np.allclose(T, U, atol=tol)), None)
+        if same is None:
+            out[name] = T
+        else:
+            out[f"{same} = {name}"] = out.pop(same)
+    return out
+
+
 def _view(p: FloatArray) -> FloatArray:
     """s coordinates -> plot coordinates (x, z, -y)."""
     p = np.atleast_2d(p)
@@ -69,7 +81,7 @@ def _draw(
         pts.append(_view(target))
         extent = max(extent, float(np.ptp(np.concatenate(pts), axis=0).max()))
     scale = scale if scale is not None else max(0.02, (0.1 if target is not None else 0.25) * extent)
-    for name, T in frames.items():
+    for name, T in merge_coincident(frames).items():
         o = T[:3, 3]
         for k in range(3):
             seg = _view(np.stack([o, o + scale * T[:3, k]]))
@@ -119,7 +131,7 @@ def chain_figure(
     ax = fig.add_subplot(1, 2 if with_target else 1, 1, projection="3d")
     _draw(ax, cal, theta, axis_length, None)
     th = ", ".join(f"{np.degrees(t):.1f}" for t in np.atleast_1d(theta))
-    ax.set_title(f"Gimbal chain, θ = [{th}] deg")
+    ax.set_title(f"Gimbal chain, θ = [{th}] deg" if cal.n_joints else "Rigid pair (L = 0)")
     if with_target:
         T = np.asarray(T_st, float)
         P = np.asarray(target_points, float) @ T[:3, :3].T + T[:3, 3]
