@@ -18,7 +18,7 @@ import numpy as np
 
 from dcc_fg.calibrate import CalibrationOptions, CalibrationResult, calibrate
 from dcc_fg.io.outputs import write_joint_angles_csv, write_json
-from dcc_fg.report import demo_table
+from dcc_fg.report import demo_table, parameter_table
 from dcc_fg.sim.calibration_scene import SceneConfig, simulate_calibration
 from dcc_fg.sim.evaluation import cramer_rao_bound, evaluate_against_truth
 
@@ -99,7 +99,7 @@ def run_demo(
         figure_paths = write_calibration_outputs(
             out_dir,
             res,
-            demo_table(summary) if report else None,
+            demo_table(summary) + "\n\n" + parameter_table(res.calibration, sim.truth) if report else None,
             truth=sim.truth,
             thetas_true=sim.joints_calibration,
             target_points=sim.calibration_set.target_points,

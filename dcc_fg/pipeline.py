@@ -62,7 +62,8 @@ def _report(out: Path, result, data, args: argparse.Namespace) -> None:  # noqa:
     if not getattr(args, "report", False):
         return
     from dcc_fg.plots.output import write_calibration_outputs
+    from dcc_fg.report import parameter_table
 
-    text = calibration_table(result.calibration.statistics)
+    text = calibration_table(result.calibration.statistics) + "\n\n" + parameter_table(result.calibration)
     paths = write_calibration_outputs(out, result, text, target_points=data.target_points)
     print("wrote " + ", ".join(str(p) for p in paths))

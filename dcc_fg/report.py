@@ -168,6 +168,22 @@ def demo_table(s: dict[str, Any]) -> str:
     return "\n\n".join(out)
 
 
+def parameter_table(cal: Any, truth: Any = None) -> str:
+    """Kinematic parameters of a ``GimbalCalibration``: status (observable / gauge-fixed / unobservable),
+    estimate, 1-sigma and, when given, the truth (radians and metres)."""
+    from dcc_fg.plots.calibration import parameter_status
+
+    std = cal.kin_std if cal.kin_std is not None else np.full(len(cal.kin), np.nan)
+    header = ["parameter", "status", "estimate", "1-sigma"] + (["truth"] if truth is not None else [])
+    rows = []
+    for k, (name, st) in enumerate(zip(cal.names, parameter_status(cal), strict=True)):
+        row = [name, st, f"{cal.kin[k]: .6f}", _fmt(float(std[k]))]
+        if truth is not None:
+            row.append(f"{truth.kin[k]: .6f}")
+        rows.append(row)
+    return _rows("Kinematic parameters (rad, m)", header, rows)
+
+
 # Figures (matplotlib, pyplot-free) live in dcc_fg.plots; re-exported here so callers find them with the tables.
 from dcc_fg.plots import (  # noqa: E402
     calibration_figures,
@@ -193,6 +209,7 @@ __all__ = [
     "error_over_distance_figure",
     "joint_angles_figure",
     "parameter_figure",
+    "parameter_table",
     "residual_figure",
     "save_figure",
     "snapshot_error_figure",

@@ -231,7 +231,7 @@ def test_report_pdf_pages_and_pngs(small, tmp_path: Path) -> None:  # noqa: ANN0
 
 
 def test_calibrate_cli_report(small, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:  # noqa: ANN001
-    from dcc_fg import pipeline
+    from dcc_fg import load_calibration, pipeline
     from dcc_fg.cli import main
 
     sim, _ = small
@@ -242,6 +242,8 @@ def test_calibrate_cli_report(small, tmp_path: Path, monkeypatch: pytest.MonkeyP
         main(["calibrate", "simulated", "--gimbal", str(tmp_path / "gimbal.yaml"), "--out", str(out), "--report"]) == 0
     )
     assert (out / "calibration.yaml").exists() and _pdf_pages(out / "report.pdf") == 1 + 5
+    table = report.parameter_table(load_calibration(out / "calibration.yaml"))
+    assert table.count("gauge-fixed") == 5 and "dh2.alpha" in table  # L = 2 encoderless: 5 entries held
     assert len(list(out.glob("calibration_*.png"))) == 5
     # without --report: no figures
     out2 = tmp_path / "out2"
