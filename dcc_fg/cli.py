@@ -1,10 +1,12 @@
-"""Command-line interface: ``dcc-fg demo | calibrate | validate``."""
+"""Command-line interface: ``dcc-fg demo | calibrate | validate | intrinsics | simulate``."""
 
 from __future__ import annotations
 
 import argparse
 import sys
 from pathlib import Path
+
+import yaml
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
@@ -24,6 +26,57 @@ def _cmd_validate(args: argparse.Namespace) -> int:
     from dcc_fg.pipeline import run_validate
 
     return run_validate(args)
+
+
+def _cmd_intrinsics(args: argparse.Namespace) -> int:
+    from dcc_fg.intrinsics import intrinsics_table, run_intrinsics
+    from dcc_fg.io.outputs import write_json
+    from dcc_fg.targets import load_target
+
+    if not Path(args.target).is_file():
+        raise ValueError(f"{args.target}: target file not found")
+    result = run_intrinsics(
+        args.data,
+        load_target(args.target),
+        camera=args.camera,
+        model=args.model,
+        out=args.out,
+        topic=args.topic,
+        every=args.every,
+        max_views=args.max_views,
+        min_corners=args.min_corners,
+        max_rms=args.max_rms,
+    )
+    print(intrinsics_table(result))
+    if args.summary:
+        write_json(Path(args.summary), result.summary())
+    print(f"wrote {args.out}" + (f", {args.summary}" if args.summary else ""))
+    return 0
+
+
+def _add_reader_options(p: argparse.ArgumentParser) -> None:
+    """Options shared by calibrate and validate: image pairing, snapshot selection, output verbosity."""
+    p.add_argument(
+        "--sync-tolerance",
+        type=float,
+        default=5.0,
+        metavar="MS",
+        help="largest time difference between a static and a dynamic image of one snapshot, milliseconds; frames "
+        "without a partner are reported (default 5)",
+    )
+    p.add_argument(
+        "--min-common-points",
+        type=int,
+        default=8,
+        metavar="N",
+        help="use a snapshot only if both cameras see at least N of the same target corners (default 8)",
+    )
+    p.add_argument(
+        "--quiet",
+        action="store_true",
+        help="no progress bar and no summary table (the progress bar, on stderr, is also off when stderr is not "
+        "a terminal)",
+    )
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -54,8 +107,15 @@ def build_parser() -> argparse.ArgumentParser:
         "encoderless mode, the joint angles (rad) of every snapshot.",
     )
     c.add_argument("data", help="ROS1 .bag, ROS2 bag folder, image folder (cam0/, cam1/) or detection folder")
-    c.add_argument("--camchain", help="Kalibr camchain YAML with cam0 (static) and cam1 (dynamic) intrinsics")
-    c.add_argument("--target", help="Kalibr target YAML (checkerboard or aprilgrid); detection folders carry their own")
+    c.add_argument(
+        "--camchain",
+        help="Kalibr camchain YAML: cam0 (static) and cam1 (dynamic) intrinsics in pixels, distortion, resolution and, "
+        "for bags, each camera's image rostopic",
+    )
+    c.add_argument(
+        "--target",
+        help="Kalibr target YAML (checkerboard or aprilgrid; sizes in metres); detection folders carry their own",
+    )
     c.add_argument("--gimbal", help="initial kinematics YAML (joints, tau_s, tau_d, dh; rad and m)")
     c.add_argument("--joints", type=int, help="number of joints L when no --gimbal is given")
     c.add_argument(
@@ -76,9 +136,20 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="corner noise in pixels (1 sigma); default: estimated from the residuals",
     )
-    c.add_argument("--robust", choices=["huber", "cauchy"], default=None, help="per-corner robust loss")
+    c.add_argument(
+        "--robust",
+        choices=["huber", "cauchy"],
+        default=None,
+        help="per-corner robust loss (default: none, plain least squares)",
+    )
     c.add_argument("--robust-k", type=float, default=2.0, help="robust loss threshold in pixels (default 2)")
-    c.add_argument("--out", default="dcc_fg_calibration", help="output folder")
+    c.add_argument(
+        "--out",
+        default="dcc_fg_calibration",
+        help="output folder for calibration.yaml, joint_angles.csv (ns, rad) and summary.json; files are replaced "
+        "atomically and only after a successful run (default ./dcc_fg_calibration)",
+    )
+    _add_reader_options(c)
     c.add_argument(
         "--report", action="store_true", help="also save the figures (OUT/calibration_*.png) and OUT/report.pdf"
     )
@@ -89,15 +160,62 @@ def build_parser() -> argparse.ArgumentParser:
         help="hold a calibration fixed and estimate only the joint angles of new snapshots",
         description="The paper's validation procedure: kinematics held at --calibration, joint angles (rad) estimated.",
     )
-    v.add_argument("data", help="bag, image folder or detection folder")
+    v.add_argument("data", help="ROS1 .bag, ROS2 bag folder, image folder (cam0/, cam1/) or detection folder")
     v.add_argument("--calibration", required=True, help="calibration.yaml written by dcc-fg calibrate")
-    v.add_argument("--camchain", help="Kalibr camchain YAML (default: the intrinsics stored in the calibration)")
-    v.add_argument("--target", help="Kalibr target YAML")
-    v.add_argument("--out", default="dcc_fg_validation", help="output folder")
+    v.add_argument(
+        "--camchain",
+        help="Kalibr camchain YAML (default: the intrinsics stored in the calibration; a bag then needs --camchain "
+        "for its image topics)",
+    )
+    v.add_argument("--target", help="Kalibr target YAML (checkerboard or aprilgrid; sizes in metres)")
+    v.add_argument(
+        "--out",
+        default="dcc_fg_validation",
+        help="output folder for calibration.yaml (the held kinematics), joint_angles.csv (ns, rad) and "
+        "summary.json; written only after a successful run (default ./dcc_fg_validation)",
+    )
+    _add_reader_options(v)
     v.add_argument(
         "--report", action="store_true", help="also save the figures (OUT/calibration_*.png) and OUT/report.pdf"
     )
     v.set_defaults(func=_cmd_validate)
+
+    i = sub.add_parser(
+        "intrinsics",
+        help="calibrate one camera's intrinsics and write a Kalibr camchain YAML",
+        description="Detect the target in one camera's images (bag topic or DATA/<camera>/<timestamp_ns>.png), "
+        "calibrate pinhole intrinsics (fx, fy, cx, cy in pixels) and distortion with OpenCV, print the RMS "
+        "reprojection error (pixels) and every parameter's 1-sigma, and write/update the camchain entry.",
+    )
+    i.add_argument("data", help="ROS1 .bag, ROS2 bag folder, or a folder with <camera>/<timestamp_ns>.png images")
+    i.add_argument("--target", required=True, help="Kalibr target YAML (checkerboard or aprilgrid; metres)")
+    i.add_argument("--camera", default="cam0", help="camchain entry and image sub-folder (default cam0)")
+    i.add_argument(
+        "--model",
+        default="pinhole-radtan",
+        choices=["pinhole-radtan", "pinhole-equidistant"],
+        help="pinhole with radial-tangential (k1 k2 p1 p2) or equidistant (k1..k4) distortion",
+    )
+    i.add_argument("--topic", help="image topic in a bag (default /<camera>/image_raw)")
+    i.add_argument("--every", type=int, default=1, help="use every n-th image (default 1)")
+    i.add_argument("--max-views", type=int, default=80, help="at most this many views, evenly spaced (default 80)")
+    i.add_argument("--min-corners", type=int, default=12, help="corners a view needs to be used (default 12)")
+    i.add_argument(
+        "--max-rms", type=float, default=2.0, help="refuse results with a larger RMS reprojection error (px, default 2)"
+    )
+    i.add_argument("--out", default="camchain.yaml", help="camchain YAML to write or update (default camchain.yaml)")
+    i.add_argument("--summary", help="optional JSON file with the parameters, 1-sigma and reprojection error")
+    i.set_defaults(func=_cmd_intrinsics)
+
+    s = sub.add_parser(
+        "simulate",
+        help="write simulated data sets with ground truth (rendered calibration images)",
+        description="Simulated data sets with ground truth. See 'dcc-fg simulate calibration --help'.",
+    )
+    s_sub = s.add_subparsers(dest="what", required=True)
+    from dcc_fg.sim.write_dataset import add_simulate_calibration_parser
+
+    add_simulate_calibration_parser(s_sub)
     return p
 
 
@@ -107,6 +225,9 @@ def main(argv: list[str] | None = None) -> int:
         return int(args.func(args))
     except (ValueError, FileNotFoundError) as exc:
         print(f"dcc-fg {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except yaml.YAMLError as exc:
+        print(f"dcc-fg {args.command}: error: malformed YAML: {exc}", file=sys.stderr)
         return 2
 
 

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import argparse
 import re
 from pathlib import Path
 
@@ -230,37 +229,30 @@ def test_report_pdf_pages_and_pngs(small, tmp_path: Path) -> None:  # noqa: ANN0
     assert not list(tmp_path.glob(".*"))  # no temporary files left behind
 
 
-def test_calibrate_cli_report(small, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:  # noqa: ANN001
-    from dcc_fg import load_calibration, pipeline
+def test_calibrate_cli_report(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """``dcc-fg calibrate IMAGES ... --report`` on a small rendered image folder, then ``validate --report``."""
+    from dcc_fg import load_calibration
     from dcc_fg.cli import main
+    from dcc_fg.sim.write_dataset import write_calibration_dataset
 
-    sim, _ = small
-    sim.initial.save(tmp_path / "gimbal.yaml")
-    monkeypatch.setattr(pipeline, "_load", lambda *a: sim.calibration_set)
+    r = write_calibration_dataset(tmp_path / "set", "checkerboard", "folder", seed=5, n_snapshots=12)
+    files = ["--camchain", str(r.camchain), "--target", str(r.target)]
     out = tmp_path / "out"
-    assert (
-        main(["calibrate", "simulated", "--gimbal", str(tmp_path / "gimbal.yaml"), "--out", str(out), "--report"]) == 0
-    )
+    assert main(["calibrate", str(r.data), *files, "--gimbal", str(r.gimbal), "--out", str(out), "--report"]) == 0
+    assert "report.pdf" in capsys.readouterr().out
     assert (out / "calibration.yaml").exists() and _pdf_pages(out / "report.pdf") == 1 + 5
+    assert sorted(p.name for p in out.glob("calibration_*.png")) == sorted(
+        f"calibration_{n}.png" for n in ("residuals", "snapshot_errors", "coverage", "parameters", "chain")
+    )
     table = report.parameter_table(load_calibration(out / "calibration.yaml"))
     assert table.count("gauge-fixed") == 5 and "dh2.alpha" in table  # L = 2 encoderless: 5 entries held
-    assert len(list(out.glob("calibration_*.png"))) == 5
-    # without --report: no figures
-    out2 = tmp_path / "out2"
-    args = argparse.Namespace(
-        gimbal=str(tmp_path / "gimbal.yaml"),
-        data="x",
-        camchain=None,
-        target=None,
-        mode="encoderless",
-        formulation="bundle",
-        pixel_sigma=None,
-        robust=None,
-        robust_k=2.0,
-        out=str(out2),
-    )
-    assert pipeline.run_calibrate(args) == 0
-    assert not list(out2.glob("*.png")) and not (out2 / "report.pdf").exists()
+    # validate without --report: no figures; with --report: figures of the validation run
+    val = tmp_path / "val"
+    argv = ["validate", str(r.data), "--calibration", str(out / "calibration.yaml"), *files, "--quiet"]
+    assert main([*argv, "--out", str(val)]) == 0
+    assert not list(val.glob("*.png")) and not (val / "report.pdf").exists()
+    assert main([*argv, "--out", str(val), "--report"]) == 0
+    assert _pdf_pages(val / "report.pdf") == 1 + 5 and capsys.readouterr().out == ""
 
 
 def test_figures_on_real_euroc_stereo_pair() -> None:
