@@ -131,7 +131,8 @@ def test_parameter_figure_marks_status(small) -> None:  # noqa: ANN001
     assert truth_pts == n
     ticks = [t.get_text() for ax in value_axes for t in ax.get_yticklabels()]
     assert sorted(ticks) == sorted(cal.names)
-    assert "unobservable" in _labels(fig) and "gauge-fixed" in _labels(fig)
+    legend = [t.get_text() for t in fig.legends[0].get_texts()]
+    assert "unobservable (gauge-dependent)" in legend and "gauge-fixed (held)" in legend and "truth" in legend
 
 
 @pytest.mark.parametrize("L", [0, 1, 2, 3])

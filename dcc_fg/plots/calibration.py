@@ -272,6 +272,11 @@ def parameter_status(cal: GimbalCalibration) -> list[str]:
     return ["gauge-fixed" if g else ("observable" if o else "unobservable") for g, o in zip(gauge, obs, strict=True)]
 
 
+STATUS_LABEL = {
+    "observable": "observable",
+    "gauge-fixed": "gauge-fixed (held)",
+    "unobservable": "unobservable (gauge-dependent)",
+}
 STATUS_STYLE = {
     "observable": {"fmt": "o", "color": "tab:blue"},
     "gauge-fixed": {"fmt": "s", "color": "0.5"},
@@ -308,7 +313,9 @@ def parameter_figure(cal: GimbalCalibration, truth: GimbalCalibration | None = N
             k = sel[m]
             val = conv(cal.kin[k])
             err = np.where(np.isfinite(std[k]), conv(np.nan_to_num(std[k])), 0.0)
-            ax_v.errorbar(val, y[m], xerr=err, fmt=style["fmt"], color=style["color"], ms=5, capsize=3, label=st)
+            ax_v.errorbar(
+                val, y[m], xerr=err, fmt=style["fmt"], color=style["color"], ms=5, capsize=3, label=STATUS_LABEL[st]
+            )
             if truth is not None:
                 d = cal.kin[k] - truth.kin[k]
                 d = _wrap(d) if unit == "deg" else d
@@ -320,11 +327,11 @@ def parameter_figure(cal: GimbalCalibration, truth: GimbalCalibration | None = N
                     color=style["color"],
                     ms=5,
                     capsize=3,
-                    label=st,
+                    label=STATUS_LABEL[st],
                 )
             else:
                 s = np.where(np.isfinite(std[k]), std[k] * dscale, 0.0)
-                ax_d.errorbar(s, y[m], fmt=style["fmt"], color=style["color"], ms=5, label=st)
+                ax_d.errorbar(s, y[m], fmt=style["fmt"], color=style["color"], ms=5, label=STATUS_LABEL[st])
         obs_std = np.array([std[k] for k in sel if status[k] == "observable" and np.isfinite(std[k])])
         if not np.isfinite(std[sel]).any():
             ax_d.text(
@@ -356,7 +363,8 @@ def parameter_figure(cal: GimbalCalibration, truth: GimbalCalibration | None = N
         ax_v.set_xlabel(f"value ({unit}), ±1σ")
         ax_v.set_title(f"{gname}")
         ax_d.set_title(f"{gname}: " + ("error against truth" if truth is not None else "standard deviation"))
-    axes[0, 0].legend(fontsize=8, loc="best")
+    handles, labels = axes[0, 0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="outside lower center", ncol=len(labels), fontsize=8)
     fig.suptitle("Kinematic parameters (circle observable, square gauge-fixed, triangle unobservable)")
     return fig
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import tempfile
+import textwrap
 from collections.abc import Iterable
 from pathlib import Path
 
@@ -13,11 +14,16 @@ from matplotlib.figure import Figure
 from dcc_fg.plots.common import new_figure
 
 LINES_PER_PAGE = 80
+CHARS_PER_LINE = 112  # 7.5 pt monospace across an A4 page with 5% margins
 
 
 def text_page(text: str, title: str = "") -> list[Figure]:
-    """Portrait A4 pages of monospaced ``text`` (split every LINES_PER_PAGE lines)."""
-    lines = text.splitlines() or [""]
+    """Portrait A4 pages of monospaced ``text``: long lines wrapped, split every LINES_PER_PAGE lines."""
+    lines = [
+        wrapped
+        for line in (text.splitlines() or [""])
+        for wrapped in (textwrap.wrap(line, CHARS_PER_LINE, subsequent_indent="    ") or [""])
+    ]
     pages = []
     for start in range(0, len(lines), LINES_PER_PAGE):
         fig = new_figure(8.27, 11.69)
