@@ -112,9 +112,13 @@ def _write(
 
 def run_calibrate(args: argparse.Namespace) -> int:
     """Calibrate from ``args.data`` with the initial kinematics of ``--gimbal``."""
-    if args.gimbal is None:
+    if args.gimbal is None and getattr(args, "joints", None) == 0:
+        # L = 0 needs no initial values: tau_s is the gauge and tau_d starts from PnP (calibrate.zero_joint_init)
+        initial = GimbalCalibration(np.zeros(12), 0)
+    elif args.gimbal is None:
         raise ValueError("--gimbal is required (automatic initialization without a gimbal.yaml is not available yet)")
-    initial: GimbalCalibration = load_calibration(args.gimbal)
+    else:
+        initial = load_calibration(args.gimbal)
     report: dict[str, Any] = {}
     data = _load(args.data, args.camchain, args.target, **_load_options(args, report))
     opts = CalibrationOptions(
