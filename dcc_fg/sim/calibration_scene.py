@@ -9,9 +9,18 @@ Pinned geometry (accuracy depends on it, so it is fixed and documented here):
   joint 1 ("roll") about an axis close to the static camera's optical axis, joint 2
   ("pitch") perpendicular to it through DH twist alpha_1 = 90 deg; joint 1 is centred at
   90 deg so that joint 2 tilts the gimbal camera about its x axis;
-* joint ranges: joint 1 in 90 +- 30 deg, joint 2 in +- 12 deg (L = 3: joint 2 in 90 +- 18 deg,
-  joint 3 in +- 18 deg, see :func:`joint_ranges`);
+* joint ranges: joint 1 in 90 +- 30 deg, joint 2 in +- 12 deg (see :func:`joint_ranges`);
   a mechanism with L = 1 has only the roll joint;
+* L = 3 is a different, pan-tilt-roll mechanism (see :func:`true_kinematics`): joint 1 pans about
+  an axis close to the static camera's y axis (90 +- 20 deg), joint 2 tilts about the camera's x
+  axis (-90 +- 20 deg), joint 3 rolls about the dynamic camera's optical axis (+- 90 deg, which
+  keeps the board in view whatever the roll); the links are offset (d, a = 5/6 cm and 4/7 cm) so
+  that the axes do not intersect. Three non-parallel axes span all rotations, so the rotation of
+  T_ds alone cannot tell the joint angles from small rotations of the mounts and DH twists; only
+  the translation (lever arms of a few cm against ~1 mm of per-snapshot translation precision)
+  separates them. The joint angles of an L = 3 mechanism are therefore much less precise than for
+  L = 2 at the same number of snapshots: with 81 snapshots the offset-free joint-angle CRB is
+  5.6e-3 / 6.6e-3 / 8.9e-3 rad (RMS), with 243 snapshots 3.6e-3 / 3.8e-3 / 5.0e-3 rad;
 * per snapshot the board is placed 0.6-1.2 m away, between both optical axes, tilted by up to
   20 deg and rolled by up to 15 deg, and re-drawn until every corner is inside both images with
   a 10 px margin (both cameras see the whole board);
@@ -94,15 +103,16 @@ def default_cameras() -> tuple[CameraModel, CameraModel]:
 def joint_ranges(n_joints: int) -> FloatArray:
     """(L, 2) lower/upper joint limits of the pinned mechanism, radians.
 
-    For L = 3, joint 2 is centred at 90 deg so that the three axes are mutually perpendicular at
-    mid-range (with joint 2 at 0 the third axis would stay nearly parallel to the first, a
-    near-degenerate mechanism).
+    For L = 3 (pan-tilt-roll), pan and tilt are limited to +- 20 deg by the requirement that both
+    cameras see the whole board; the roll about the optical axis does not move the view, so it
+    spans +- 90 deg. Joint 2 is centred at -90 deg, where the three axes are mutually
+    perpendicular and the roll axis is the dynamic camera's optical axis.
     """
     ranges = {
         0: [],
         1: [(60.0, 120.0)],
         2: [(60.0, 120.0), (-12.0, 12.0)],
-        3: [(60.0, 120.0), (72.0, 108.0), (-18.0, 18.0)],
+        3: [(70.0, 110.0), (-110.0, -70.0), (-90.0, 90.0)],
     }
     if n_joints not in ranges:
         raise ValueError(f"the pinned scene supports 0 to 3 joints, got {n_joints}")
@@ -124,12 +134,15 @@ def true_kinematics(n_joints: int) -> GimbalCalibration:
         ]
     )
     dh = dh_all[:n_joints]
-    if n_joints == 3:
-        # three intersecting axes would form a spherical wrist whose joint angles can absorb any
-        # rotation of the base (a near-gauge); longer links keep the L = 3 mechanism well posed
-        dh = np.array([[0.030, 0.080, 70.0 * DEG], [0.040, 0.070, -60.0 * DEG], [0.010, 0.012, 90.0 * DEG]])
     # base frame: axes ~ static camera axes (small rotation), origin 0.10 m to the right
     tau_s = np.array([1.5 * DEG, -2.0 * DEG, 3.0 * DEG, -0.10, 0.012, 0.025])
+    if n_joints == 3:
+        # pan-tilt-roll: base z (pan axis) ~ the static camera's y axis (tau_s.rx ~ 90 deg); twists
+        # of 90 deg make tilt and roll axes perpendicular. Three intersecting axes would form a
+        # spherical wrist whose joint angles absorb any rotation of the mounts exactly (a gauge),
+        # so the links are offset by several cm.
+        dh = np.array([[0.080, 0.100, 90.0 * DEG], [0.060, 0.100, 90.0 * DEG], [0.010, 0.012, 0.0]])
+        tau_s[0] += 90.0 * DEG
     theta_mid = joint_ranges(n_joints).mean(axis=1) if n_joints else np.zeros(0)
     # desired T_ds at mid-range: dynamic camera centre at (0.10, -0.005, 0.01) in s, small rotation
     R_ds = chain.rot_z(2.0 * DEG) @ chain.rot_y(-1.5 * DEG) @ chain.rot_x(1.0 * DEG)
