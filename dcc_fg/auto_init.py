@@ -145,32 +145,47 @@ def _sphere_points(n: int) -> FloatArray:
     return np.column_stack([rho * np.cos(phi), rho * np.sin(phi), z])
 
 
-def _rotation_two_joints(R_sd: FloatArray) -> tuple[FloatArray, FloatArray, float]:
-    """Axes ``w1`` (in s), ``b2`` (in d) and cos(alpha_1) of an L = 2 mechanism.
+def _refine_axis(R_sd: FloatArray, u: FloatArray, step: float = 0.06) -> FloatArray:
+    """Local refinement of a joint-1 axis candidate by shrinking grids around it."""
+    for _ in range(4):
+        e1 = np.linalg.svd(u.reshape(1, 3))[2][1:]
+        g = np.linspace(-step, step, 13)
+        cand = u + np.array([a * e1[0] + b * e1[1] for a in g for b in g])
+        cand /= np.linalg.norm(cand, axis=1, keepdims=True)
+        c, _ = _axis_pair_cost(R_sd, cand)
+        u = cand[int(np.argmin(c))]
+        step /= 5.0
+    return u
+
+
+def _rotation_two_joints(R_sd: FloatArray, n_candidates: int = 4) -> list[tuple[FloatArray, FloatArray, float]]:
+    """Candidate axes ``w1`` (in s), ``b2`` (in d) and cos(alpha_1) of an L = 2 mechanism, best first.
 
     ``w1^T R_sd_i b2`` is the same for every snapshot, so for the true ``w1`` the vectors
     ``R_sd_i^T w1`` lie in one plane normal to ``b2``. The linear version of this (null vector of
     ``[vec(R_sd_i), -1]``) is swamped by PnP noise when a joint moves only +-10 deg, so the search
     is over the unit vector ``w1`` (2 dof; ``b2`` and the constant follow from the smallest
-    eigenvector of a 3x3 covariance): a hemisphere grid, then three finer local grids.
+    eigenvector of a 3x3 covariance): a hemisphere grid, then finer local grids around the best
+    few well-separated grid minima (small joint ranges can leave more than one plausible minimum;
+    the pose-level fit decides between them).
     """
     U = _sphere_points(3000)
     cost, _ = _axis_pair_cost(R_sd, U)
-    u = U[int(np.argmin(cost))]
-    step = 0.06
-    for _ in range(4):
-        e1 = np.linalg.svd(u.reshape(1, 3))[2][1:]
-        g = np.linspace(-step, step, 13)
-        du = np.array([a * e1[0] + b * e1[1] for a in g for b in g])
-        cand = u + du
-        cand /= np.linalg.norm(cand, axis=1, keepdims=True)
-        c, _ = _axis_pair_cost(R_sd, cand)
-        u = cand[int(np.argmin(c))]
-        step /= 5.0
-    _, V = _axis_pair_cost(R_sd, u.reshape(1, 3))
-    b2 = V[0]
-    c = float(np.mean(np.einsum("kji,j,i->k", R_sd, u, b2)))
-    return u, b2, float(np.clip(c, -1.0, 1.0))
+    picked: list[FloatArray] = []
+    for k in np.argsort(cost):
+        if all(abs(float(U[k] @ p)) < np.cos(np.deg2rad(15.0)) for p in picked):
+            picked.append(U[k])
+        if len(picked) == n_candidates:
+            break
+    out = []
+    for u0 in picked:
+        u = _refine_axis(R_sd, u0)
+        c_min, V = _axis_pair_cost(R_sd, u.reshape(1, 3))
+        b2 = V[0]
+        c = float(np.mean(np.einsum("kji,j,i->k", R_sd, u, b2)))
+        out.append((float(c_min[0]), u, b2, float(np.clip(c, -1.0, 1.0))))
+    out.sort(key=lambda t: t[0])
+    return [(u, b2, c) for _, u, b2, c in out]
 
 
 def _translation_solve(
@@ -223,9 +238,7 @@ def _assemble(
     return np.concatenate([tau_s, tau_d, dh.ravel()])
 
 
-def _end_mount(
-    W: FloatArray, rel_last: FloatArray
-) -> tuple[FloatArray, FloatArray]:
+def _end_mount(W: FloatArray, rel_last: FloatArray) -> tuple[FloatArray, FloatArray]:
     """Given ``W_i = Rz(theta_L,i) R_ed`` up to a common offset of theta_L, choose the offset so that
     tau_d's Euler pitch is 0 and return (theta_L (K,), R_ed)."""
     th = _wrap(rel_last - np.angle(np.mean(np.exp(1j * rel_last))))
@@ -235,8 +248,12 @@ def _end_mount(
     return th + phi, chain.rot_z(-phi) @ R_ed
 
 
-def closed_form_low_dof(T_ds: FloatArray, n_joints: int) -> tuple[FloatArray, FloatArray]:
-    """Closed-form kin (12 + 3L) and joint angles (K, L) for L in {1, 2} (module docstring)."""
+def closed_form_low_dof(
+    T_ds: FloatArray, n_joints: int, axes: tuple[FloatArray, FloatArray, float] | None = None
+) -> tuple[FloatArray, FloatArray]:
+    """Closed-form kin (12 + 3L) and joint angles (K, L) for L in {1, 2} (module docstring).
+
+    ``axes``: (w1, b2, cos alpha_1) for L = 2 (default: the best candidate of the axis search)."""
     T_sd = np.array([chain.inv_se3(T) for T in T_ds])
     R_sd = T_sd[:, :3, :3]
     K = T_sd.shape[0]
@@ -248,7 +265,7 @@ def closed_form_low_dof(T_ds: FloatArray, n_joints: int) -> tuple[FloatArray, Fl
         thetas = th1.reshape(K, 1)
         alphas = np.zeros(1)
     elif n_joints == 2:
-        w1, b2, c = _rotation_two_joints(R_sd)
+        w1, b2, c = axes if axes is not None else _rotation_two_joints(R_sd)[0]
         alpha1 = float(np.arccos(c))
         R_bs = base_rotation(w1)
         v = np.einsum("ij,kjl,l->ki", R_bs, R_sd, b2)  # Rz(theta_1) [0, -sin a1, cos a1]
@@ -315,6 +332,36 @@ def multistart_three_joints(
     return best
 
 
+def _two_joint_candidates(
+    T: FloatArray, free: NDArray[np.bool_], good_rms: float = 5.0
+) -> tuple[FloatArray, FloatArray, float]:
+    """Closed form for each axis candidate, then the pose-level fit; the lowest fit RMS wins.
+
+    Nearly parallel joint axes (|sin alpha_1| small) put the closed form next to the DH
+    singularity, where d_1 is undefined; there the twist is also started at +-0.25 rad from
+    0 or pi and the pose-level fit decides.
+    """
+    R_sd = np.array([chain.inv_se3(x)[:3, :3] for x in T])
+    best: tuple[FloatArray, FloatArray, float] | None = None
+    for axes in _rotation_two_joints(R_sd):
+        kin0, th0 = closed_form_low_dof(T, 2, axes)
+        starts = [kin0]
+        if abs(np.sin(kin0[14])) < 0.25:
+            base = 0.0 if np.cos(kin0[14]) > 0 else np.pi
+            for a in (base + 0.25, base - 0.25):
+                k = kin0.copy()
+                k[14] = a
+                starts.append(k)
+        for k0 in starts:
+            cand = pose_level_refine(k0, 2, T, th0, free, [1], True)
+            if best is None or cand[2] < best[2]:
+                best = cand
+        if best is not None and best[2] < good_rms and abs(np.sin(best[0][14])) > 0.25:
+            break
+    assert best is not None
+    return best
+
+
 def auto_initialize(
     data: CalibrationDataset, n_joints: int, T_ds: FloatArray | None = None
 ) -> tuple[GimbalCalibration, FloatArray, float]:
@@ -346,9 +393,11 @@ def auto_initialize(
     free = np.ones(chain.n_kin(n_joints), dtype=bool)
     last = 12 + 3 * (n_joints - 1)
     free[[2, 5, last, last + 1, last + 2]] = False
-    if n_joints <= 2:
-        kin0, th0 = closed_form_low_dof(T, n_joints)
-        kin, th, rms = pose_level_refine(kin0, n_joints, T, th0, free, [n_joints - 1], True)
+    if n_joints == 1:
+        kin0, th0 = closed_form_low_dof(T, 1)
+        kin, th, rms = pose_level_refine(kin0, 1, T, th0, free, [0], True)
+    elif n_joints == 2:
+        kin, th, rms = _two_joint_candidates(T, free)
     else:
         kin, th, rms = multistart_three_joints(T)
     return GimbalCalibration(kin, n_joints, **cams), th, rms

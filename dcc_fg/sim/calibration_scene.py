@@ -36,7 +36,7 @@ data set produces; ground truth travels alongside in :class:`SimulatedCalibratio
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -256,12 +256,83 @@ def simulate_snapshots(
     return data, np.asarray(joints, dtype=float), np.array(poses)
 
 
-def simulate_calibration(seed: int = 0, config: SceneConfig | None = None) -> SimulatedCalibration:
-    """Simulate the paper's study: calibration + validation sets, truth and perturbed initial values."""
+def mechanism_with_camera_at(
+    tau_s: FloatArray, dh: FloatArray, theta_mid: FloatArray, T_ds_mid: FloatArray
+) -> GimbalCalibration:
+    """The mechanism whose end-effector mount ``tau_d`` puts the dynamic camera at ``T_ds_mid``
+    when the joints are at ``theta_mid`` (pinned cameras)."""
+    T_de = T_ds_mid @ chain.inv_se3(chain.T_eb(dh, theta_mid) @ chain.se3_from_tau(tau_s))
+    static, dynamic = default_cameras()
+    return GimbalCalibration.from_parts(
+        tau_s, chain.tau_from_se3(T_de), dh, static_camera=static, dynamic_camera=dynamic
+    )
+
+
+def random_mechanism(
+    rng: np.random.Generator, n_joints: int, max_link: float = 0.10, half_range_deg: tuple[float, float] = (8.0, 15.0)
+) -> tuple[GimbalCalibration, FloatArray]:
+    """A random DCC mechanism and joint ranges with both cameras seeing the board.
+
+    * base mount: uniformly random rotation (any joint-1 axis direction), base origin within
+      0.15 m of the static camera;
+    * DH links: d, a uniform in [-max_link, max_link] m, twists alpha uniform in [-pi, pi);
+    * joint ranges: random centre, half width uniform in ``half_range_deg`` (deg) per joint;
+    * the dynamic camera mount ``tau_d`` is whatever puts the dynamic camera ~0.10 m to the
+      right of the static camera, looking along its optical axis (+- 5 deg, +- 2 cm) at the
+      centre of the ranges: the cameras must share the view of the board.
+
+    Degenerate draws (nearly parallel axes, Euler singularities) are possible and not filtered.
+    """
+    q = rng.normal(size=4)
+    q /= np.linalg.norm(q)
+    w, x, y, z = q
+    R_bs = np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+    T_bs = np.eye(4)
+    T_bs[:3, :3] = R_bs
+    T_bs[:3, 3] = -R_bs @ (np.array([0.10, 0.0, 0.0]) + rng.uniform(-0.05, 0.05, size=3))
+    tau_s = chain.tau_from_se3(T_bs)
+    dh = np.column_stack(
+        [
+            rng.uniform(-max_link, max_link, size=n_joints),
+            rng.uniform(-max_link, max_link, size=n_joints),
+            rng.uniform(-np.pi, np.pi, size=n_joints),
+        ]
+    )
+    centre = rng.uniform(-np.pi, np.pi, size=n_joints)
+    half = np.deg2rad(rng.uniform(*half_range_deg, size=n_joints))
+    ranges = np.column_stack([centre - half, centre + half])
+    R_ds = _axis_angle(rng.normal(size=3), np.deg2rad(rng.uniform(0.0, 5.0)))
+    c_s = np.array([0.10, 0.0, 0.0]) + rng.uniform(-0.02, 0.02, size=3)
+    T_ds_mid = np.eye(4)
+    T_ds_mid[:3, :3] = R_ds
+    T_ds_mid[:3, 3] = -R_ds @ c_s
+    return mechanism_with_camera_at(tau_s, dh, centre, T_ds_mid), ranges
+
+
+def simulate_calibration(
+    seed: int = 0,
+    config: SceneConfig | None = None,
+    mechanism: tuple[GimbalCalibration, FloatArray] | None = None,
+) -> SimulatedCalibration:
+    """Simulate the paper's study: calibration + validation sets, truth and perturbed initial values.
+
+    ``mechanism``: (true kinematics, joint ranges (L, 2) rad) to use instead of the pinned one
+    (for example from :func:`random_mechanism`); ``config.n_joints`` is then ignored.
+    """
     cfg = config or SceneConfig()
     rng = np.random.default_rng(seed)
-    truth = true_kinematics(cfg.n_joints)
-    ranges = joint_ranges(cfg.n_joints)
+    if mechanism is None:
+        truth = true_kinematics(cfg.n_joints)
+        ranges = joint_ranges(cfg.n_joints)
+    else:
+        truth, ranges = mechanism
+        cfg = replace(cfg, n_joints=truth.n_joints)
     theta_cal = grid_joint_samples(cfg.n_calibration, ranges, rng)
     theta_val = ranges[:, 0] + rng.uniform(size=(cfg.n_validation, cfg.n_joints)) * (ranges[:, 1] - ranges[:, 0])
     cal_set, th_c, T_c = simulate_snapshots(truth, theta_cal, cfg, rng, f"simulation(seed={seed}, calibration)")
