@@ -345,15 +345,20 @@ def _two_joint_candidates(
     best: tuple[FloatArray, FloatArray, float] | None = None
     for axes in _rotation_two_joints(R_sd):
         kin0, th0 = closed_form_low_dof(T, 2, axes)
-        starts = [kin0]
+        starts = [(kin0, th0)]
         if abs(np.sin(kin0[14])) < 0.25:
+            # nearly parallel axes: the rotations only give theta_1 + theta_2; split it several ways
             base = 0.0 if np.cos(kin0[14]) > 0 else np.pi
+            total = th0[:, 0] + th0[:, 1] * np.cos(kin0[14])
             for a in (base + 0.25, base - 0.25):
-                k = kin0.copy()
-                k[14] = a
-                starts.append(k)
-        for k0 in starts:
-            cand = pose_level_refine(k0, 2, T, th0, free, [1], True)
+                for share in (0.3, 0.7):
+                    k = kin0.copy()
+                    k[14] = a
+                    th = np.column_stack([share * total, (1.0 - share) * total * np.cos(a - base)])
+                    th -= th.mean(axis=0) - th0.mean(axis=0)
+                    starts.append((k, th))
+        for k0, t0 in starts:
+            cand = pose_level_refine(k0, 2, T, t0, free, [1], True)
             if best is None or cand[2] < best[2]:
                 best = cand
         if best is not None and best[2] < good_rms and abs(np.sin(best[0][14])) > 0.25:

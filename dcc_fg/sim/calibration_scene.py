@@ -112,7 +112,7 @@ def joint_ranges(n_joints: int) -> FloatArray:
         0: [],
         1: [(60.0, 120.0)],
         2: [(60.0, 120.0), (-12.0, 12.0)],
-        3: [(70.0, 110.0), (-110.0, -70.0), (-90.0, 90.0)],
+        3: [(78.0, 102.0), (-110.0, -70.0), (-55.0, 55.0)],
     }
     if n_joints not in ranges:
         raise ValueError(f"the pinned scene supports 0 to 3 joints, got {n_joints}")
@@ -141,7 +141,7 @@ def true_kinematics(n_joints: int) -> GimbalCalibration:
         # of 90 deg make tilt and roll axes perpendicular. Three intersecting axes would form a
         # spherical wrist whose joint angles absorb any rotation of the mounts exactly (a gauge),
         # so the links are offset by several cm.
-        dh = np.array([[0.080, 0.100, 90.0 * DEG], [0.060, 0.100, 90.0 * DEG], [0.010, 0.012, 0.0]])
+        dh = np.array([[0.120, 0.100, 90.0 * DEG], [0.120, 0.050, 90.0 * DEG], [0.010, 0.012, 0.0]])
         tau_s[0] += 90.0 * DEG
     theta_mid = joint_ranges(n_joints).mean(axis=1) if n_joints else np.zeros(0)
     # desired T_ds at mid-range: dynamic camera centre at (0.10, -0.005, 0.01) in s, small rotation
@@ -269,13 +269,21 @@ def mechanism_with_camera_at(
 
 
 def random_mechanism(
-    rng: np.random.Generator, n_joints: int, max_link: float = 0.10, half_range_deg: tuple[float, float] = (8.0, 15.0)
+    rng: np.random.Generator,
+    n_joints: int,
+    max_link: float = 0.10,
+    half_range_deg: tuple[float, float] = (8.0, 15.0),
+    twist_deg: tuple[float, float] = (20.0, 160.0),
 ) -> tuple[GimbalCalibration, FloatArray]:
     """A random DCC mechanism and joint ranges with both cameras seeing the board.
 
     * base mount: uniformly random rotation (any joint-1 axis direction), base origin within
       0.15 m of the static camera;
-    * DH links: d, a uniform in [-max_link, max_link] m, twists alpha uniform in [-pi, pi);
+    * DH links: d, a uniform in [-max_link, max_link] m; twists alpha of random sign with magnitude
+      uniform in ``twist_deg`` (deg). A gimbal's consecutive axes are not parallel (parallel axes
+      would not give the camera an independent rotation; they make the DH d of the link and the
+      split of the rotation between the joints unobservable at these joint ranges), so twists
+      within 20 deg of 0 or 180 deg are not drawn;
     * joint ranges: random centre, half width uniform in ``half_range_deg`` (deg) per joint;
     * the dynamic camera mount ``tau_d`` is whatever puts the dynamic camera ~0.10 m to the
       right of the static camera, looking along its optical axis (+- 5 deg, +- 2 cm) at the
@@ -301,7 +309,7 @@ def random_mechanism(
         [
             rng.uniform(-max_link, max_link, size=n_joints),
             rng.uniform(-max_link, max_link, size=n_joints),
-            rng.uniform(-np.pi, np.pi, size=n_joints),
+            rng.choice([-1.0, 1.0], size=n_joints) * rng.uniform(*twist_deg, size=n_joints) * DEG,
         ]
     )
     centre = rng.uniform(-np.pi, np.pi, size=n_joints)
