@@ -119,6 +119,13 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--gimbal", help="initial kinematics YAML (joints, tau_s, tau_d, dh; rad and m)")
     c.add_argument("--joints", type=int, help="number of joints L when no --gimbal is given")
     c.add_argument(
+        "--init",
+        choices=["auto", "gimbal"],
+        default=None,
+        help="initial values: 'gimbal' reads --gimbal; 'auto' estimates axes, DH links, mounts and joint "
+        "angles from per-snapshot PnP (needs --joints). Default: gimbal if --gimbal is given, else auto",
+    )
+    c.add_argument(
         "--mode",
         default="encoderless",
         choices=["encoderless", "encoders"],

@@ -112,15 +112,9 @@ def _write(
 
 def run_calibrate(args: argparse.Namespace) -> int:
     """Calibrate from ``args.data`` with the initial kinematics of ``--gimbal``."""
-    if args.gimbal is None and getattr(args, "joints", None) == 0:
-        # L = 0 needs no initial values: tau_s is the gauge and tau_d starts from PnP (calibrate.zero_joint_init)
-        initial = GimbalCalibration(np.zeros(12), 0)
-    elif args.gimbal is None:
-        raise ValueError("--gimbal is required (automatic initialization without a gimbal.yaml is not available yet)")
-    else:
-        initial = load_calibration(args.gimbal)
     report: dict[str, Any] = {}
     data = _load(args.data, args.camchain, args.target, **_load_options(args, report))
+    initial, data = initial_values(args, data)
     opts = CalibrationOptions(
         mode=args.mode,
         formulation=args.formulation,
@@ -132,6 +126,30 @@ def run_calibrate(args: argparse.Namespace) -> int:
     _write(Path(args.out), result, report=report, quiet=getattr(args, "quiet", False))
     _report(Path(args.out), result, data, args)
     return 0
+
+
+def initial_values(args: argparse.Namespace, data):  # noqa: ANN001, ANN201 - CalibrationDataset in and out
+    """Initial kinematics from ``--gimbal`` (``--init gimbal``) or from the data (``--init auto``,
+    the default without ``--gimbal``; needs ``--joints L``). The automatic joint angles are put
+    into the snapshots as the starting guesses."""
+    init = getattr(args, "init", None) or ("gimbal" if args.gimbal else "auto")
+    if init == "gimbal":
+        if args.gimbal is None:
+            raise ValueError("--init gimbal needs --gimbal G.yaml")
+        return load_calibration(args.gimbal), data
+    if init != "auto":
+        raise ValueError(f"--init must be auto or gimbal, got {init}")
+    if args.joints is None:
+        raise ValueError("--joints L is required when no --gimbal G.yaml is given (automatic initialization)")
+    from dataclasses import replace
+
+    from dcc_fg.auto_init import auto_initialize
+
+    initial, thetas, _ = auto_initialize(data, int(args.joints))
+    if args.mode == "encoders":  # joint readings come from the data; keep them
+        return initial, data
+    snaps = [replace(s, joints=t) for s, t in zip(data.snapshots, thetas, strict=True)]
+    return initial, replace(data, snapshots=snaps)
 
 
 def run_validate(args: argparse.Namespace) -> int:

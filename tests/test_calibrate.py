@@ -74,15 +74,23 @@ def test_one_joint_mechanism_reaches_the_cramer_rao_bound() -> None:
 
 
 def test_three_joint_mechanism_converges() -> None:
-    """L = 3: converges to the noise floor with T_ds near the bound. The joint angles of a 3-axis
-    mechanism are nearly degenerate (three axes span all rotations), so the bound itself is ~1e-2 rad."""
-    sim = simulate_calibration(0, SceneConfig(n_joints=3))
+    """L = 3, the pinned pan-tilt-roll mechanism (dcc_fg/sim/calibration_scene.py): the solver
+    converges (stops on its tolerance, not on the iteration cap) to the noise floor, T_ds reaches
+    the Cramer-Rao bound, and the offset-free joint angles reach theirs. Three axes span all
+    rotations, so the joint-angle bound of an L = 3 mechanism is set by lever arms and is several
+    times that of L = 2; on this geometry it is still below the paper's joint-1 error (Table II)."""
+    sim = simulate_calibration(0, SceneConfig(n_joints=3, n_validation=1))
     res = calibrate(sim.calibration_set, sim.initial, CalibrationOptions(compute_covariance=False))
+    assert res.iterations < 100
     assert abs(res.reprojection_stats()["all"]["rms_per_axis"] - 0.4) < 0.04
     err = evaluate_against_truth(res, sim.truth, sim.joints_calibration)
     crb = cramer_rao_bound(sim.calibration_set, sim.truth, sim.joints_calibration, sim.T_st_calibration, 0.4)
-    assert err.rotation_rms < 1.5 * crb.rotation_rms
-    assert err.translation_rms < 1.5 * crb.translation_rms
+    assert err.rotation_rms < 1.2 * crb.rotation_rms
+    assert err.translation_rms < 1.2 * crb.translation_rms
+    # one seed: the RMS over 81 snapshots of a joint angle dominated by a few weak kinematic
+    # directions has a wide sampling spread, hence 1.5x
+    assert np.all(err.joint_rms < 1.5 * crb.joint_rms)
+    assert np.all(np.abs(err.joints).mean(axis=0) < PAPER_JOINT_ERR[0])
 
 
 def test_encoders_mode_with_true_angles(demo_sim) -> None:

@@ -9,9 +9,18 @@ Pinned geometry (accuracy depends on it, so it is fixed and documented here):
   joint 1 ("roll") about an axis close to the static camera's optical axis, joint 2
   ("pitch") perpendicular to it through DH twist alpha_1 = 90 deg; joint 1 is centred at
   90 deg so that joint 2 tilts the gimbal camera about its x axis;
-* joint ranges: joint 1 in 90 +- 30 deg, joint 2 in +- 12 deg (L = 3: joint 2 in 90 +- 18 deg,
-  joint 3 in +- 18 deg, see :func:`joint_ranges`);
+* joint ranges: joint 1 in 90 +- 30 deg, joint 2 in +- 12 deg (see :func:`joint_ranges`);
   a mechanism with L = 1 has only the roll joint;
+* L = 3 is a different, pan-tilt-roll mechanism (see :func:`true_kinematics`): joint 1 pans about
+  an axis close to the static camera's y axis (90 +- 20 deg), joint 2 tilts about the camera's x
+  axis (-90 +- 20 deg), joint 3 rolls about the dynamic camera's optical axis (+- 90 deg, which
+  keeps the board in view whatever the roll); the links are offset (d, a = 5/6 cm and 4/7 cm) so
+  that the axes do not intersect. Three non-parallel axes span all rotations, so the rotation of
+  T_ds alone cannot tell the joint angles from small rotations of the mounts and DH twists; only
+  the translation (lever arms of a few cm against ~1 mm of per-snapshot translation precision)
+  separates them. The joint angles of an L = 3 mechanism are therefore much less precise than for
+  L = 2 at the same number of snapshots: with 81 snapshots the offset-free joint-angle CRB is
+  5.6e-3 / 6.6e-3 / 8.9e-3 rad (RMS), with 243 snapshots 3.6e-3 / 3.8e-3 / 5.0e-3 rad;
 * per snapshot the board is placed 0.6-1.2 m away, between both optical axes, tilted by up to
   20 deg and rolled by up to 15 deg, and re-drawn until every corner is inside both images with
   a 10 px margin (both cameras see the whole board);
@@ -27,7 +36,7 @@ data set produces; ground truth travels alongside in :class:`SimulatedCalibratio
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -94,15 +103,16 @@ def default_cameras() -> tuple[CameraModel, CameraModel]:
 def joint_ranges(n_joints: int) -> FloatArray:
     """(L, 2) lower/upper joint limits of the pinned mechanism, radians.
 
-    For L = 3, joint 2 is centred at 90 deg so that the three axes are mutually perpendicular at
-    mid-range (with joint 2 at 0 the third axis would stay nearly parallel to the first, a
-    near-degenerate mechanism).
+    For L = 3 (pan-tilt-roll), pan and tilt are limited to +- 20 deg by the requirement that both
+    cameras see the whole board; the roll about the optical axis does not move the view, so it
+    spans +- 90 deg. Joint 2 is centred at -90 deg, where the three axes are mutually
+    perpendicular and the roll axis is the dynamic camera's optical axis.
     """
     ranges = {
         0: [],
         1: [(60.0, 120.0)],
         2: [(60.0, 120.0), (-12.0, 12.0)],
-        3: [(60.0, 120.0), (72.0, 108.0), (-18.0, 18.0)],
+        3: [(78.0, 102.0), (-110.0, -70.0), (-55.0, 55.0)],
     }
     if n_joints not in ranges:
         raise ValueError(f"the pinned scene supports 0 to 3 joints, got {n_joints}")
@@ -124,12 +134,15 @@ def true_kinematics(n_joints: int) -> GimbalCalibration:
         ]
     )
     dh = dh_all[:n_joints]
-    if n_joints == 3:
-        # three intersecting axes would form a spherical wrist whose joint angles can absorb any
-        # rotation of the base (a near-gauge); longer links keep the L = 3 mechanism well posed
-        dh = np.array([[0.030, 0.080, 70.0 * DEG], [0.040, 0.070, -60.0 * DEG], [0.010, 0.012, 90.0 * DEG]])
     # base frame: axes ~ static camera axes (small rotation), origin 0.10 m to the right
     tau_s = np.array([1.5 * DEG, -2.0 * DEG, 3.0 * DEG, -0.10, 0.012, 0.025])
+    if n_joints == 3:
+        # pan-tilt-roll: base z (pan axis) ~ the static camera's y axis (tau_s.rx ~ 90 deg); twists
+        # of 90 deg make tilt and roll axes perpendicular. Three intersecting axes would form a
+        # spherical wrist whose joint angles absorb any rotation of the mounts exactly (a gauge),
+        # so the links are offset by several cm.
+        dh = np.array([[0.120, 0.100, 90.0 * DEG], [0.120, 0.050, 90.0 * DEG], [0.010, 0.012, 0.0]])
+        tau_s[0] += 90.0 * DEG
     theta_mid = joint_ranges(n_joints).mean(axis=1) if n_joints else np.zeros(0)
     # desired T_ds at mid-range: dynamic camera centre at (0.10, -0.005, 0.01) in s, small rotation
     R_ds = chain.rot_z(2.0 * DEG) @ chain.rot_y(-1.5 * DEG) @ chain.rot_x(1.0 * DEG)
@@ -243,12 +256,91 @@ def simulate_snapshots(
     return data, np.asarray(joints, dtype=float), np.array(poses)
 
 
-def simulate_calibration(seed: int = 0, config: SceneConfig | None = None) -> SimulatedCalibration:
-    """Simulate the paper's study: calibration + validation sets, truth and perturbed initial values."""
+def mechanism_with_camera_at(
+    tau_s: FloatArray, dh: FloatArray, theta_mid: FloatArray, T_ds_mid: FloatArray
+) -> GimbalCalibration:
+    """The mechanism whose end-effector mount ``tau_d`` puts the dynamic camera at ``T_ds_mid``
+    when the joints are at ``theta_mid`` (pinned cameras)."""
+    T_de = T_ds_mid @ chain.inv_se3(chain.T_eb(dh, theta_mid) @ chain.se3_from_tau(tau_s))
+    static, dynamic = default_cameras()
+    return GimbalCalibration.from_parts(
+        tau_s, chain.tau_from_se3(T_de), dh, static_camera=static, dynamic_camera=dynamic
+    )
+
+
+def random_mechanism(
+    rng: np.random.Generator,
+    n_joints: int,
+    max_link: float = 0.10,
+    half_range_deg: tuple[float, float] = (8.0, 15.0),
+    twist_deg: tuple[float, float] = (20.0, 160.0),
+) -> tuple[GimbalCalibration, FloatArray]:
+    """A random DCC mechanism and joint ranges with both cameras seeing the board.
+
+    * base mount: uniformly random rotation (any joint-1 axis direction), base origin within
+      0.15 m of the static camera;
+    * DH links: d, a uniform in [-max_link, max_link] m; twists alpha of random sign with magnitude
+      uniform in ``twist_deg`` (deg). A gimbal's consecutive axes are not parallel (parallel axes
+      would not give the camera an independent rotation; they make the DH d of the link and the
+      split of the rotation between the joints unobservable at these joint ranges), so twists
+      within 20 deg of 0 or 180 deg are not drawn;
+    * joint ranges: random centre, half width uniform in ``half_range_deg`` (deg) per joint;
+    * the dynamic camera mount ``tau_d`` is whatever puts the dynamic camera ~0.10 m to the
+      right of the static camera, looking along its optical axis (+- 5 deg, +- 2 cm) at the
+      centre of the ranges: the cameras must share the view of the board.
+
+    Degenerate draws (nearly parallel axes, Euler singularities) are possible and not filtered.
+    """
+    q = rng.normal(size=4)
+    q /= np.linalg.norm(q)
+    w, x, y, z = q
+    R_bs = np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+    T_bs = np.eye(4)
+    T_bs[:3, :3] = R_bs
+    T_bs[:3, 3] = -R_bs @ (np.array([0.10, 0.0, 0.0]) + rng.uniform(-0.05, 0.05, size=3))
+    tau_s = chain.tau_from_se3(T_bs)
+    dh = np.column_stack(
+        [
+            rng.uniform(-max_link, max_link, size=n_joints),
+            rng.uniform(-max_link, max_link, size=n_joints),
+            rng.choice([-1.0, 1.0], size=n_joints) * rng.uniform(*twist_deg, size=n_joints) * DEG,
+        ]
+    )
+    centre = rng.uniform(-np.pi, np.pi, size=n_joints)
+    half = np.deg2rad(rng.uniform(*half_range_deg, size=n_joints))
+    ranges = np.column_stack([centre - half, centre + half])
+    R_ds = _axis_angle(rng.normal(size=3), np.deg2rad(rng.uniform(0.0, 5.0)))
+    c_s = np.array([0.10, 0.0, 0.0]) + rng.uniform(-0.02, 0.02, size=3)
+    T_ds_mid = np.eye(4)
+    T_ds_mid[:3, :3] = R_ds
+    T_ds_mid[:3, 3] = -R_ds @ c_s
+    return mechanism_with_camera_at(tau_s, dh, centre, T_ds_mid), ranges
+
+
+def simulate_calibration(
+    seed: int = 0,
+    config: SceneConfig | None = None,
+    mechanism: tuple[GimbalCalibration, FloatArray] | None = None,
+) -> SimulatedCalibration:
+    """Simulate the paper's study: calibration + validation sets, truth and perturbed initial values.
+
+    ``mechanism``: (true kinematics, joint ranges (L, 2) rad) to use instead of the pinned one
+    (for example from :func:`random_mechanism`); ``config.n_joints`` is then ignored.
+    """
     cfg = config or SceneConfig()
     rng = np.random.default_rng(seed)
-    truth = true_kinematics(cfg.n_joints)
-    ranges = joint_ranges(cfg.n_joints)
+    if mechanism is None:
+        truth = true_kinematics(cfg.n_joints)
+        ranges = joint_ranges(cfg.n_joints)
+    else:
+        truth, ranges = mechanism
+        cfg = replace(cfg, n_joints=truth.n_joints)
     theta_cal = grid_joint_samples(cfg.n_calibration, ranges, rng)
     theta_val = ranges[:, 0] + rng.uniform(size=(cfg.n_validation, cfg.n_joints)) * (ranges[:, 1] - ranges[:, 0])
     cal_set, th_c, T_c = simulate_snapshots(truth, theta_cal, cfg, rng, f"simulation(seed={seed}, calibration)")

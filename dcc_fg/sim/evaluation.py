@@ -29,6 +29,11 @@ from factors import chain
 from factors.calibration import KinLayout, bundle_residuals
 
 FloatArray = NDArray[np.float64]
+# Relative eigenvalue below which a direction of the (Jacobi-scaled) information matrix counts as an
+# exact gauge direction. Exact gauge directions sit at ~1e-16 of the largest eigenvalue (round-off);
+# weakly informative directions of a nearly degenerate mechanism (L = 3: ~6e-10) must be kept, or
+# the bound would silently ignore their uncertainty.
+PINV_REL_TOL = 1e-12
 
 
 def T_ds_errors(
@@ -163,7 +168,7 @@ def cramer_rao_bound(
     d = np.sqrt(np.diag(H))
     Hn = H / np.outer(d, d)
     w, V = np.linalg.eigh(Hn)
-    keep = w > 1e-9 * w.max()
+    keep = w > PINV_REL_TOL * w.max()
     Hn_pinv = (V[:, keep] / w[keep]) @ V[:, keep].T
     C = Hn_pinv / np.outer(d, d)
 
