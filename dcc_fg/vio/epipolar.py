@@ -98,32 +98,53 @@ def kabsch_rotation(u: FloatArray, v: FloatArray) -> FloatArray:
 
 
 def rotation_ransac(
-    xy_a: FloatArray, xy_b: FloatArray, threshold: float, iterations: int = 64, seed: int = 0
+    xy_a: FloatArray,
+    xy_b: FloatArray,
+    threshold: float,
+    t_ba: FloatArray | None = None,
+    min_depth: float = 0.3,
+    iterations: int = 64,
+    seed: int = 0,
 ) -> tuple[FloatArray | None, BoolArray]:
-    """Fit a pure rotation ``R_ba`` (bearings of a -> bearings of b) robustly.
+    """Fit the rotation ``R_ba`` between two cameras robustly from correspondences.
 
-    Good between two cameras whose baseline is small against the scene depth, when no
-    extrinsic estimate is available.  ``threshold`` is the angle (radians) between a rotated
-    bearing of a and the bearing of b for an inlier.  Returns (R or None, inlier mask).
+    Hypotheses come from two correspondences (bearings aligned by :func:`kabsch_rotation`).  With
+    no translation (``t_ba`` None) a correspondence is an inlier when the rotated bearing of a is
+    within ``threshold`` radians of the bearing of b (right when the baseline is small against the
+    scene depth).  With a translation ``t_ba`` (metres, e.g. from an extrinsic estimate whose
+    rotation is out of date) the test is :func:`depth_segment_distance` under ``[R | t_ba]``
+    for depths >= ``min_depth``, which tolerates the parallax of near points.  Returns
+    (R or None, inlier mask); None when fewer than 3 correspondences agree.
     """
     n = xy_a.shape[0]
-    inliers = np.zeros(n, dtype=bool)
+    none = np.zeros(n, dtype=bool)
     if n < 3:
-        return None, inliers
+        return None, none
     u = homogeneous(xy_a)
     u /= np.linalg.norm(u, axis=1, keepdims=True)
     v = homogeneous(xy_b)
     v /= np.linalg.norm(v, axis=1, keepdims=True)
-    rng = np.random.default_rng(seed)
     cos_thr = np.cos(threshold)
-    best: FloatArray | None = None
+
+    def inliers_of(R: FloatArray) -> BoolArray:
+        if t_ba is None:
+            return np.sum((u @ R.T) * v, axis=1) > cos_thr
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = R, t_ba
+        return depth_segment_distance(T, xy_a, xy_b, min_depth) < threshold
+
+    rng = np.random.default_rng(seed)
+    best, best_inl = None, none
     for _ in range(iterations):
         idx = rng.choice(n, 2, replace=False)
         R = kabsch_rotation(u[idx], v[idx])
-        inl = np.sum((u @ R.T) * v, axis=1) > cos_thr
-        if inl.sum() > inliers.sum():
-            inliers, best = inl, R
-    if best is None or inliers.sum() < 3:
-        return None, np.zeros(n, dtype=bool)
-    R = kabsch_rotation(u[inliers], v[inliers])
-    return R, np.sum((u @ R.T) * v, axis=1) > cos_thr
+        inl = inliers_of(R)
+        if inl.sum() > best_inl.sum():
+            best, best_inl = R, inl
+    if best is None or best_inl.sum() < 3:
+        return None, none
+    R = kabsch_rotation(u[best_inl], v[best_inl])
+    inl = inliers_of(R)
+    if inl.sum() >= best_inl.sum():
+        best, best_inl = R, inl
+    return best, best_inl

@@ -19,12 +19,13 @@ Per synchronized frame pair (:meth:`Frontend.process`):
    for callers with a good prediction).
 3. **Static <-> gimbal matching** so that shared landmarks make the joint angles observable:
    tracks of one camera whose id is not seen by the other get rotation-invariant ORB descriptors
-   and are matched (mutual nearest neighbour, ratio test); a match must lie near the image of
-   the static ray for depths >= ``match_min_depth`` under the current T_ds estimate (a loose
-   test), or, with no estimate, agree with a RANSAC rotation between the two cameras.  The
-   younger of the two tracks takes the older one's id (for the back end this just ends the
-   younger track: ids are never re-assigned to different points).  Pairs sharing an id are
-   re-checked each frame against the T_ds estimate and split when they drift apart.
+   and are matched (mutual nearest neighbour, ratio test).  Together with the pairs already
+   sharing an id they go through a RANSAC fit of the rotation between the two cameras, with
+   the translation taken from the current T_ds estimate: the test (the image of the static ray
+   for depths >= ``match_min_depth``) then needs no up-to-date joint angles, only a lever arm.
+   The younger of the two tracks takes the older one's id (for the back end this just ends the
+   younger track: ids are never re-assigned to different points); shared pairs that fail the
+   test are split.
 
 Output: a :class:`~dcc_fg.vio.types.TrackFrame` of undistorted normalized coordinates
 (:meth:`CameraModel.undistort_points`).  Pixels follow OpenCV's convention.  Times in ns.
@@ -75,9 +76,12 @@ class FrontendConfig:
         min_parallax: median static flow below which RANSAC is skipped.
         match_every: run static<->gimbal matching every n-th frame.
         match_ratio, match_max_hamming: descriptor ratio test and distance bound (bits of 256).
-        match_epipolar_threshold: static<->gimbal check against T_ds, normalized units (~radians).
+        match_epipolar_threshold: static<->gimbal check with the translation of the T_ds estimate and
+            the rotation fitted to the matches, normalized units (~radians).
         match_min_depth: smallest scene depth (metres) for that check.
-        match_rotation_threshold: angle (rad) for the rotation-RANSAC check without a T_ds estimate.
+        match_rotation_threshold: angle (rad) of the pure-rotation check used without a T_ds estimate
+            (it must exceed the parallax of the nearest points: baseline / depth).
+        min_pairs: fewer static<->gimbal pairs than this are checked against the T_ds estimate alone.
         dynamic_threshold: gimbal-camera epipolar (Sampson) threshold of the second stage.
         dynamic_rotation_threshold: gimbal-camera threshold when the motion is a pure rotation.
     """
@@ -95,9 +99,10 @@ class FrontendConfig:
     match_every: int = 1
     match_ratio: float = 0.8
     match_max_hamming: int = 64
-    match_epipolar_threshold: float = 0.03
+    match_epipolar_threshold: float = 0.02
     match_min_depth: float = 0.3
     match_rotation_threshold: float = 0.05
+    min_pairs: int = 6
     dynamic_threshold: float = 2.0
     dynamic_rotation_threshold: float = 4.0
 
@@ -322,9 +327,7 @@ class Frontend:
             self.dynamic.detect()
         t2 = time.perf_counter()
         if self.dynamic is not None:
-            self._check_shared()
-            if self.stats.frames % max(self.config.match_every, 1) == 0:
-                self._match()
+            self._match()
         t3 = time.perf_counter()
         self.stats.frames += 1
         self.stats.static_ms.append(1e3 * (t1 - t0))
@@ -425,41 +428,52 @@ class Frontend:
         return removed
 
     # ------------------------------------------------------------------ static <-> gimbal
-    def _check_shared(self) -> None:
-        """Split shared ids whose two tracks no longer agree with the T_ds estimate."""
-        d = self.dynamic
-        if d is None or self.T_ds is None:
+    def _match(self) -> None:
+        """Match unshared tracks across the cameras and verify every shared pair geometrically.
+
+        New descriptor matches and the pairs already sharing an id go through one rotation
+        RANSAC (translation from the T_ds estimate when there is one, so only the rotation,
+        which the joint angles change most, comes from the data).  Inlier matches merge ids;
+        shared pairs that became outliers (a KLT track slid onto another corner) are split by
+        giving the gimbal track a fresh id.  With fewer than ``min_pairs`` pairs the T_ds
+        estimate alone decides (nothing new is merged without one).
+        """
+        s, d = self.static, self.dynamic
+        assert d is not None and s.gray is not None and d.gray is not None
+        cfg = self.config
+        _, sh_s, sh_d = np.intersect1d(s.ids, d.ids, return_indices=True)
+        cand_s = np.flatnonzero(~np.isin(s.ids, d.ids))
+        cand_d = np.flatnonzero(~np.isin(d.ids, s.ids))
+        new_s = new_d = np.zeros(0, dtype=np.int64)
+        if cand_s.size and cand_d.size and self.stats.frames % max(cfg.match_every, 1) == 0:
+            ks, desc_s = self._describer.describe(s.gray, s.pts[cand_s].astype(np.float64))
+            kd, desc_d = self._describer.describe(d.gray, d.pts[cand_d].astype(np.float64))
+            ma, mb, _ = mutual_ratio_matches(desc_s, desc_d, cfg.match_ratio, cfg.match_max_hamming)
+            new_s, new_d = cand_s[ks[ma]], cand_d[kd[mb]]
+        i_s = np.concatenate([sh_s.astype(np.int64), new_s])
+        i_d = np.concatenate([sh_d.astype(np.int64), new_d])
+        if i_s.size == 0:
             return
-        common, i_s, i_d = np.intersect1d(self.static.ids, d.ids, return_indices=True)
-        if common.size == 0:
-            return
-        err = depth_segment_distance(self.T_ds, self.static.xy[i_s], d.xy[i_d], self.config.match_min_depth)
-        bad = i_d[err > self.config.match_epipolar_threshold]
+        t_ds = None if self.T_ds is None else self.T_ds[:3, 3]
+        if i_s.size >= cfg.min_pairs:
+            thr = cfg.match_epipolar_threshold if t_ds is not None else cfg.match_rotation_threshold
+            R, ok = rotation_ransac(s.xy[i_s], d.xy[i_d], thr, t_ds, cfg.match_min_depth, seed=self.stats.frames)
+            if R is None:
+                ok = np.zeros(i_s.size, dtype=bool)
+        elif self.T_ds is not None:
+            err = depth_segment_distance(self.T_ds, s.xy[i_s], d.xy[i_d], cfg.match_min_depth)
+            ok = err < cfg.match_epipolar_threshold
+        else:
+            ok = np.zeros(i_s.size, dtype=bool)
+            ok[: sh_s.size] = True  # too few pairs to judge: keep the existing ones
+        n_sh = sh_s.size
+        bad = i_d[:n_sh][~ok[:n_sh]]
         if bad.size:
             d.ids[bad] = np.fromiter(itertools.islice(self._ids, bad.size), np.int64, bad.size)
             d.ages[bad] = 0
             self.stats.pairs_split += int(bad.size)
-
-    def _match(self) -> None:
-        s, d = self.static, self.dynamic
-        assert d is not None and s.gray is not None and d.gray is not None
-        cand_s = np.flatnonzero(~np.isin(s.ids, d.ids))
-        cand_d = np.flatnonzero(~np.isin(d.ids, s.ids))
-        if cand_s.size == 0 or cand_d.size == 0:
-            return
-        ks, desc_s = self._describer.describe(s.gray, s.pts[cand_s].astype(np.float64))
-        kd, desc_d = self._describer.describe(d.gray, d.pts[cand_d].astype(np.float64))
-        ma, mb, _ = mutual_ratio_matches(desc_s, desc_d, self.config.match_ratio, self.config.match_max_hamming)
-        if ma.size == 0:
-            return
-        i_s, i_d = cand_s[ks[ma]], cand_d[kd[mb]]
-        if self.T_ds is not None:
-            err = depth_segment_distance(self.T_ds, s.xy[i_s], d.xy[i_d], self.config.match_min_depth)
-            ok = err < self.config.match_epipolar_threshold
-        else:
-            _, ok = rotation_ransac(s.xy[i_s], d.xy[i_d], self.config.match_rotation_threshold)
-        i_s, i_d = i_s[ok], i_d[ok]
-        younger_d = d.ages[i_d] <= s.ages[i_s]
-        d.ids[i_d[younger_d]] = s.ids[i_s[younger_d]]
-        s.ids[i_s[~younger_d]] = d.ids[i_d[~younger_d]]
-        self.stats.matches += int(i_s.size)
+        m_s, m_d = i_s[n_sh:][ok[n_sh:]], i_d[n_sh:][ok[n_sh:]]
+        younger_d = d.ages[m_d] <= s.ages[m_s]
+        d.ids[m_d[younger_d]] = s.ids[m_s[younger_d]]
+        s.ids[m_s[~younger_d]] = d.ids[m_d[~younger_d]]
+        self.stats.matches += int(m_s.size)
