@@ -90,11 +90,35 @@ def depth_segment_distance(T_ba: FloatArray, xy_a: FloatArray, xy_b: FloatArray,
 
 
 def kabsch_rotation(u: FloatArray, v: FloatArray) -> FloatArray:
-    """Rotation R minimizing ``sum |v_i - R u_i|^2`` for unit vectors (N, 3)."""
-    H = u.T @ v
+    """Rotation R minimizing ``sum |v_i - R u_i|^2`` for unit vectors (N, 3); batched over leading
+    axes: (..., N, 3) -> (..., 3, 3)."""
+    H = np.swapaxes(u, -1, -2) @ v
     U, _, Vt = np.linalg.svd(H)
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
-    return Vt.T @ D @ U.T
+    V, Ut = np.swapaxes(Vt, -1, -2), np.swapaxes(U, -1, -2)
+    sign = np.sign(np.linalg.det(V @ Ut))
+    D = np.zeros(H.shape)
+    D[..., 0, 0] = 1.0
+    D[..., 1, 1] = 1.0
+    D[..., 2, 2] = np.where(sign == 0, 1.0, sign)
+    return V @ D @ Ut
+
+
+def _segment_distance_batch(
+    R: FloatArray, t: FloatArray, xy_a: FloatArray, xy_b: FloatArray, zmin: float
+) -> FloatArray:
+    """:func:`depth_segment_distance` for a batch of rotations (B, 3, 3) sharing ``t``: (B, N)."""
+    rays = np.einsum("bij,nj->bni", R, homogeneous(xy_a))
+    near = rays * zmin + t
+    far_z = np.where(rays[..., 2] > 1e-9, rays[..., 2], np.nan)
+    near_z = np.where(near[..., 2] > 1e-9, near[..., 2], np.nan)
+    a = rays[..., :2] / far_z[..., None]
+    b = near[..., :2] / near_z[..., None]
+    b = np.where(np.isnan(b), a, b)
+    ab = b - a
+    ap = xy_b[None] - a
+    s = np.clip(np.sum(ap * ab, axis=-1) / np.maximum(np.sum(ab * ab, axis=-1), 1e-24), 0.0, 1.0)
+    out = np.linalg.norm(ap - s[..., None] * ab, axis=-1)
+    return np.where(np.isnan(out), np.inf, out)
 
 
 def rotation_ransac(
@@ -103,19 +127,23 @@ def rotation_ransac(
     threshold: float,
     t_ba: FloatArray | None = None,
     min_depth: float = 0.3,
-    iterations: int = 64,
+    max_iterations: int = 64,
+    confidence: float = 0.999,
     seed: int = 0,
 ) -> tuple[FloatArray | None, BoolArray]:
     """Fit the rotation ``R_ba`` between two cameras robustly from correspondences.
 
-    Hypotheses come from two correspondences (bearings aligned by :func:`kabsch_rotation`).  With
-    no translation (``t_ba`` None) a correspondence is an inlier when the rotated bearing of a is
-    within ``threshold`` radians of the bearing of b (right when the baseline is small against the
-    scene depth).  With a translation ``t_ba`` (metres, e.g. from an extrinsic estimate whose
-    rotation is out of date) the test is :func:`depth_segment_distance` under ``[R | t_ba]``
-    for depths >= ``min_depth``, which tolerates the parallax of near points.  Returns
-    (R or None, inlier mask); None when fewer than 3 correspondences agree.
+    Hypotheses come from two correspondences (bearings aligned by :func:`kabsch_rotation`), drawn
+    in batches of 16 until the usual RANSAC bound for ``confidence`` is met.  With no translation
+    (``t_ba`` None) a correspondence is an inlier when the rotated bearing of a is within
+    ``threshold`` radians of the bearing of b (right when the baseline is small against the scene
+    depth).  With a translation ``t_ba`` (metres, e.g. from an extrinsic estimate whose rotation is
+    out of date) the test is :func:`depth_segment_distance` under ``[R | t_ba]`` for depths
+    >= ``min_depth``, which tolerates the parallax of near points.  Returns (R or None, inlier
+    mask); None when fewer than 3 correspondences agree.
     """
+    xy_a = np.asarray(xy_a, dtype=float).reshape(-1, 2)
+    xy_b = np.asarray(xy_b, dtype=float).reshape(-1, 2)
     n = xy_a.shape[0]
     none = np.zeros(n, dtype=bool)
     if n < 3:
@@ -125,26 +153,32 @@ def rotation_ransac(
     v = homogeneous(xy_b)
     v /= np.linalg.norm(v, axis=1, keepdims=True)
     cos_thr = np.cos(threshold)
+    t = None if t_ba is None else np.asarray(t_ba, dtype=float).reshape(3)
 
-    def inliers_of(R: FloatArray) -> BoolArray:
-        if t_ba is None:
-            return np.sum((u @ R.T) * v, axis=1) > cos_thr
-        T = np.eye(4)
-        T[:3, :3], T[:3, 3] = R, t_ba
-        return depth_segment_distance(T, xy_a, xy_b, min_depth) < threshold
+    def inliers_of(R: FloatArray) -> BoolArray:  # (B, 3, 3) -> (B, N)
+        if t is None:
+            return np.einsum("bij,nj,ni->bn", R, u, v) > cos_thr
+        return _segment_distance_batch(R, t, xy_a, xy_b, min_depth) < threshold
 
     rng = np.random.default_rng(seed)
     best, best_inl = None, none
-    for _ in range(iterations):
-        idx = rng.choice(n, 2, replace=False)
-        R = kabsch_rotation(u[idx], v[idx])
+    done, needed = 0, max_iterations
+    while done < min(needed, max_iterations):
+        batch = 16
+        i = rng.integers(0, n, size=(batch, 2))
+        i[:, 1] = (i[:, 0] + 1 + rng.integers(0, n - 1, size=batch)) % n
+        R = kabsch_rotation(u[i], v[i])
         inl = inliers_of(R)
-        if inl.sum() > best_inl.sum():
-            best, best_inl = R, inl
+        k = int(np.argmax(inl.sum(axis=1)))
+        if inl[k].sum() > best_inl.sum():
+            best, best_inl = R[k], inl[k]
+            w = best_inl.mean()
+            needed = int(np.ceil(np.log(1 - confidence) / np.log(max(1 - w * w, 1e-12)))) if w < 1 else 1
+        done += batch
     if best is None or best_inl.sum() < 3:
         return None, none
     R = kabsch_rotation(u[best_inl], v[best_inl])
-    inl = inliers_of(R)
+    inl = inliers_of(R[None])[0]
     if inl.sum() >= best_inl.sum():
         best, best_inl = R, inl
     return best, best_inl
