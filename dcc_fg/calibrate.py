@@ -393,6 +393,9 @@ def calibrate(
         if estimate_theta:
             thetas0 = thetas_fit
         layout = KinLayout(kin_start, ~fixed, L)
+    elif opt.mode != "validate":  # L = 0: T_ds is one constant transform; start tau_d from PnP
+        kin_start = zero_joint_init(initial.kin, T_dt0 @ np.linalg.inv(T_st0))
+        layout = KinLayout(kin_start, ~fixed, L)
 
     pnp_points = [
         (m.p_t_dynamic @ T_st0[i][:3, :3].T + T_st0[i][:3, 3], m.p_t_static @ T_dt0[i][:3, :3].T + T_dt0[i][:3, 3])
@@ -547,6 +550,30 @@ def calibrate(
     out.extra["covariance"] = covariance_note
     cal.statistics = summary_statistics(out)
     return out
+
+
+def mean_pose(T: FloatArray) -> FloatArray:
+    """Average of K rigid transforms (K, 4, 4): chordal L2 mean rotation (SVD projection of the
+    summed rotation matrices onto SO(3)) and arithmetic mean translation."""
+    U, _, Vt = np.linalg.svd(T[:, :3, :3].sum(axis=0))
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+    out = np.eye(4)
+    out[:3, :3] = U @ D @ Vt
+    out[:3, 3] = T[:, :3, 3].mean(axis=0)
+    return out
+
+
+def zero_joint_init(kin0: FloatArray, T_ds_pnp: FloatArray) -> FloatArray:
+    """Closed-form start for L = 0: ``tau_d`` from the mean PnP ``T_ds`` with ``tau_s`` held.
+
+    With no joints ``T_ds = T_de(tau_d) T_bs(tau_s)``, so ``T_de = mean(T_ds) inv(T_bs)``; this
+    removes any dependence on the user's initial ``tau_d`` (a far-off one, e.g. a 90-degree
+    rotation, otherwise starts the pixel graph with points behind the camera).
+    """
+    kin = np.asarray(kin0, float).copy()
+    T_de = mean_pose(T_ds_pnp) @ chain.inv_se3(chain.se3_from_tau(kin[0:6]))
+    kin[6:12] = chain.tau_from_se3(T_de)
+    return kin
 
 
 def robust_pose_level_init(

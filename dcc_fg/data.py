@@ -74,3 +74,18 @@ class CalibrationDataset:
     target_points: FloatArray
     snapshots: list[Snapshot] = field(default_factory=list)
     source: str = "<memory>"
+
+
+def common_corners(data: CalibrationDataset) -> CalibrationDataset:
+    """The same dataset with each snapshot reduced to the target points both cameras see.
+
+    This is the measurement set a stereo calibration such as ``cv2.stereoCalibrate`` uses (it
+    needs one object-point list per image pair); the bundle formulation can also use the corners
+    only one camera sees, which constrain the target pose of that snapshot.
+    """
+    snaps = []
+    for s in data.snapshots:
+        ids, i_s, i_d = np.intersect1d(s.static.ids, s.dynamic.ids, return_indices=True)
+        static, dynamic = Observation(ids, s.static.pixels[i_s]), Observation(ids, s.dynamic.pixels[i_d])
+        snaps.append(Snapshot(s.timestamp_ns, static, dynamic, s.joints))
+    return CalibrationDataset(data.static_camera, data.dynamic_camera, data.target_points, snaps, data.source)

@@ -146,6 +146,38 @@ def decode_image(msg: Any, msgtype: str, where: str) -> NDArray[np.generic]:
     return img[:, :, 0] if channels == 1 else img
 
 
+@contextmanager
+def open_bag(path: Path) -> Iterator[AnyReader]:
+    """An opened AnyReader; a truncated or corrupt bag -> ValueError naming it."""
+    reader = _reader(path)
+    try:
+        reader.open()
+    except _BAG_ERRORS as exc:
+        raise ValueError(f"{path}: truncated or corrupt bag, cannot open it ({exc})") from None
+    try:
+        yield reader
+    finally:
+        reader.close()
+
+
+def bag_messages(path: Path, reader: AnyReader, conns: list[Connection]) -> Iterator[tuple[Connection, int, Any]]:
+    """(connection, record time ns, deserialized message); corrupt data -> ValueError naming the bag."""
+    it = reader.messages(connections=conns)
+    while True:
+        try:
+            item = next(it)
+        except StopIteration:
+            return
+        except _BAG_ERRORS as exc:
+            raise ValueError(f"{path}: truncated or corrupt bag ({type(exc).__name__}: {exc})") from None
+        conn, t, raw = item
+        try:
+            msg = reader.deserialize(raw, conn.msgtype)
+        except _BAG_ERRORS as exc:
+            raise ValueError(f"{path}: topic {conn.topic}: message at {t} ns does not deserialize ({exc})") from None
+        yield conn, t, msg
+
+
 class BagImagePairs:
     """Synchronized image pairs of two topics of a bag, streamed.
 
@@ -220,34 +252,12 @@ class BagImagePairs:
 
     @contextmanager
     def _open(self) -> Iterator[AnyReader]:
-        reader = _reader(self.path)
-        try:
-            reader.open()
-        except _BAG_ERRORS as exc:
-            raise ValueError(f"{self.path}: truncated or corrupt bag, cannot open it ({exc})") from None
-        try:
+        with open_bag(self.path) as reader:
             yield reader
-        finally:
-            reader.close()
 
     def _messages(self, reader: AnyReader, conns: list[Connection]) -> Iterator[tuple[Connection, int, Any]]:
         """(connection, record time ns, deserialized message); corrupt data -> ValueError naming the bag."""
-        it = reader.messages(connections=conns)
-        while True:
-            try:
-                item = next(it)
-            except StopIteration:
-                return
-            except _BAG_ERRORS as exc:
-                raise ValueError(f"{self.path}: truncated or corrupt bag ({type(exc).__name__}: {exc})") from None
-            conn, t, raw = item
-            try:
-                msg = reader.deserialize(raw, conn.msgtype)
-            except _BAG_ERRORS as exc:
-                raise ValueError(
-                    f"{self.path}: topic {conn.topic}: message at {t} ns does not deserialize ({exc})"
-                ) from None
-            yield conn, t, msg
+        return bag_messages(self.path, reader, conns)
 
     def _image_connections(self, reader: AnyReader) -> list[Connection]:
         out = []
@@ -339,6 +349,42 @@ def read_bag_pairs(
 ) -> BagImagePairs:
     """Open a bag and pair its two image topics (see :class:`BagImagePairs`)."""
     return BagImagePairs(path, static_topic, dynamic_topic, joint_topic, tolerance_ns, joint_names)
+
+
+class BagTopicImages:
+    """The images of one topic of a bag, streamed in record order (one camera's intrinsics).
+
+    Attributes:
+        path: the bag file or folder; topic: the image topic.
+    """
+
+    def __init__(self, path: str | Path, topic: str) -> None:
+        """Check that ``topic`` exists and holds images (ValueError naming the bag and topic)."""
+        self.path = Path(path)
+        self.topic = topic
+        with open_bag(self.path) as reader:
+            self._count = sum(c.msgcount for c in self._connections(reader))
+
+    def _connections(self, reader: AnyReader) -> list[Connection]:
+        conns = [c for c in reader.connections if c.topic == self.topic]
+        if not conns:
+            images = sorted({c.topic for c in reader.connections if c.msgtype in (IMAGE, COMPRESSED_IMAGE)})
+            raise ValueError(f"{self.path}: topic {self.topic} not found (image topics: {', '.join(images) or 'none'})")
+        bad = [c.msgtype for c in conns if c.msgtype not in (IMAGE, COMPRESSED_IMAGE)]
+        if bad:
+            raise ValueError(f"{self.path}: topic {self.topic} has type {bad[0]}, not sensor_msgs/Image")
+        return conns
+
+    def __len__(self) -> int:
+        return self._count
+
+    def __iter__(self) -> Iterator[tuple[int, NDArray[np.generic], str]]:
+        """Yield ``(header stamp ns, image, where)``; one decoded image in memory at a time."""
+        with open_bag(self.path) as reader:
+            for conn, t, msg in bag_messages(self.path, reader, self._connections(reader)):
+                ts = stamp_ns(msg, t)
+                where = f"{self.path}: topic {self.topic} at {ts} ns"
+                yield ts, decode_image(msg, conn.msgtype, where), where
 
 
 # ---------------------------------------------------------------------------------------------
