@@ -17,13 +17,17 @@ z forward).  Pixels follow OpenCV's convention.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from dcc_fg.model import GimbalCalibration
+from dcc_fg.sim.trajectory import FlightTruth, World
 from factors.camera import CameraModel
+from factors.chain import inv_se3
 
 FloatArray = NDArray[np.float64]
 
@@ -199,18 +203,42 @@ def _sample(img: NDArray[np.float32], x: NDArray[np.float32], y: NDArray[np.floa
     return res.ravel()[:n]
 
 
-def box_world(
-    extent: tuple[float, float, float, float] = (-20.0, 40.0, -20.0, 30.0), wall_height: float = 8.0, seed: int = 0
-) -> list[TexturedPlane]:
-    """A ground plane z = 0 over ``(xmin, xmax, ymin, ymax)`` (world frame, z up) and four walls
-    facing inwards, ``wall_height`` metres high."""
-    x0, x1, y0, y1 = extent
-    ground = TexturedPlane((x0, y0, 0.0), (1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (x1 - x0, y1 - y0), seed)
-    up = (0.0, 0.0, 1.0)
-    walls = [
-        TexturedPlane((x0, y0, 0.0), (1.0, 0.0, 0.0), up, (x1 - x0, wall_height), seed + 1),  # south, faces +y
-        TexturedPlane((x1, y1, 0.0), (-1.0, 0.0, 0.0), up, (x1 - x0, wall_height), seed + 2),  # north
-        TexturedPlane((x0, y1, 0.0), (0.0, -1.0, 0.0), up, (y1 - y0, wall_height), seed + 3),  # west
-        TexturedPlane((x1, y0, 0.0), (0.0, 1.0, 0.0), up, (y1 - y0, wall_height), seed + 4),  # east
+def planes_from_world(world: World, seed: int = 0) -> list[TexturedPlane]:
+    """The ground and walls of a :class:`~dcc_fg.sim.trajectory.World` as textured planes."""
+    return [
+        TexturedPlane(
+            tuple(float(x) for x in o),  # type: ignore[arg-type]
+            tuple(float(x) for x in u),  # type: ignore[arg-type]
+            tuple(float(x) for x in v),  # type: ignore[arg-type]
+            (float(eu), float(ev)),
+            seed + k,
+        )
+        for k, (_, o, u, v, eu, ev) in enumerate(world.planes())
     ]
-    return [ground, *walls]
+
+
+def render_flight(
+    renderer: WorldRenderer,
+    truth: FlightTruth,
+    calibration: GimbalCalibration,
+    T_sI: FloatArray,
+    noise_sigma: float = 2.0,
+    seed: int = 0,
+) -> Iterator[tuple[int, NDArray[np.uint8], NDArray[np.uint8]]]:
+    """Yield ``(t_ns, static image, gimbal image)`` at every camera frame of ``truth``, one at a time.
+
+    Static camera pose ``T_sW = T_sI inv(T_WI)``; gimbal camera ``T_dW = T_ds(theta(t)) T_sW`` with
+    the true joint angles; the cameras are the calibration's (true) models.
+    """
+    cam_s, cam_d = calibration.static_camera, calibration.dynamic_camera
+    if cam_s is None or cam_d is None:
+        raise ValueError("the calibration must carry both camera models to render a flight")
+    rng = np.random.default_rng(seed)
+    for i, t in zip(truth.index_of(truth.frame_t_ns), truth.frame_t_ns, strict=True):
+        T_sW = T_sI @ inv_se3(truth.T_WI[i])
+        T_dW = calibration.T_ds(truth.theta[i]) @ T_sW
+        yield (
+            int(t),
+            renderer.render(cam_s, T_sW, noise_sigma, rng),
+            renderer.render(cam_d, T_dW, noise_sigma, rng),
+        )
