@@ -125,6 +125,26 @@ class WorldRenderer:
             self._rays[camera] = (x, y, np.sqrt(x * x + y * y + 1.0).astype(np.float32))
         return self._rays[camera]
 
+    def raycast(self, T_cW: FloatArray, xy: FloatArray) -> FloatArray:
+        """World points (N, 3) where the rays of normalized coordinates ``xy`` (N, 2) of a camera
+        at ``T_cW`` first hit a plane; NaN rows for rays that hit nothing (ground truth for tests)."""
+        T_cW = np.asarray(T_cW, dtype=float)
+        R_Wc = T_cW[:3, :3].T
+        c_W = -R_Wc @ T_cW[:3, 3]
+        r_W = np.hstack([np.asarray(xy, float).reshape(-1, 2), np.ones((len(xy), 1))]) @ R_Wc.T
+        best = np.full(r_W.shape[0], np.inf)
+        for p in self.planes:
+            o, u_ax, v_ax, n = (np.asarray(x, float) for x in (p.origin, p.u_axis, p.v_axis, p.normal))
+            with np.errstate(divide="ignore", invalid="ignore"):
+                t = (n @ (o - c_W)) / (r_W @ n)
+            q = c_W + t[:, None] * r_W
+            a, b = (q - o) @ u_ax, (q - o) @ v_ax
+            hit = (t > 1e-3) & (t < best) & (a >= 0) & (a <= p.size[0]) & (b >= 0) & (b <= p.size[1])
+            best[hit] = t[hit]
+        out = c_W + best[:, None] * r_W
+        out[~np.isfinite(best)] = np.nan
+        return out
+
     def render(
         self,
         camera: CameraModel,
@@ -224,8 +244,10 @@ def render_flight(
     T_sI: FloatArray,
     noise_sigma: float = 2.0,
     seed: int = 0,
+    frames: slice | None = None,
 ) -> Iterator[tuple[int, NDArray[np.uint8], NDArray[np.uint8]]]:
-    """Yield ``(t_ns, static image, gimbal image)`` at every camera frame of ``truth``, one at a time.
+    """Yield ``(t_ns, static image, gimbal image)`` at every camera frame of ``truth`` (or the
+    ``frames`` slice of them), one at a time.
 
     Static camera pose ``T_sW = T_sI inv(T_WI)``; gimbal camera ``T_dW = T_ds(theta(t)) T_sW`` with
     the true joint angles; the cameras are the calibration's (true) models.
@@ -234,7 +256,9 @@ def render_flight(
     if cam_s is None or cam_d is None:
         raise ValueError("the calibration must carry both camera models to render a flight")
     rng = np.random.default_rng(seed)
-    for i, t in zip(truth.index_of(truth.frame_t_ns), truth.frame_t_ns, strict=True):
+    sel = frames if frames is not None else slice(None)
+    t_frames = truth.frame_t_ns[sel]
+    for i, t in zip(truth.index_of(t_frames), t_frames, strict=True):
         T_sW = T_sI @ inv_se3(truth.T_WI[i])
         T_dW = calibration.T_ds(truth.theta[i]) @ T_sW
         yield (

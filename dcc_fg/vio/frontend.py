@@ -4,8 +4,10 @@ Per synchronized frame pair (:meth:`Frontend.process`):
 
 1. **Static camera s**: pyramidal Lucas-Kanade tracking with a forward-backward check, then
    RANSAC on the essential matrix between the previous and the current frame (undistorted
-   normalized coordinates, threshold in pixels / focal length); frames with almost no parallax
-   skip RANSAC (the essential matrix is degenerate without translation).  New corners
+   normalized coordinates, threshold in pixels / focal length; OpenCV's USAC with local
+   optimization: with the short baseline of consecutive frames plain RANSAC often prefers a
+   wrong model that absorbs a small independently moving cluster); frames with almost no
+   parallax skip RANSAC (the essential matrix is degenerate without translation).  New corners
    (Shi-Tomasi) fill the image with a minimum spacing.
 2. **Gimbal camera d**: tracked and refilled the same way, but *not* rejected with a motion
    model: the extrinsics T_ds(theta) change with the unknown joint angles, so an epipolar test
@@ -74,6 +76,7 @@ class FrontendConfig:
         ransac_threshold: static-camera essential-matrix RANSAC threshold.
         ransac_confidence: RANSAC confidence.
         min_parallax: median static flow below which RANSAC is skipped.
+        ransac_window: frames between the two views of the second, long-baseline RANSAC.
         match_every: run static<->gimbal matching every n-th frame.
         match_ratio, match_max_hamming: descriptor ratio test and distance bound (bits of 256).
         match_epipolar_threshold: static<->gimbal check with the translation of the T_ds estimate and
@@ -94,8 +97,9 @@ class FrontendConfig:
     fb_threshold: float = 1.0
     border: int = 5
     ransac_threshold: float = 1.0
-    ransac_confidence: float = 0.999
+    ransac_confidence: float = 0.99999
     min_parallax: float = 1.0
+    ransac_window: int = 4
     match_every: int = 1
     match_ratio: float = 0.8
     match_max_hamming: int = 64
@@ -173,6 +177,8 @@ class CameraTracker:
         self.xy = np.zeros((0, 2))
         #: normalized position in the previous frame (NaN for tracks born this frame)
         self.prev_xy = np.zeros((0, 2))
+        #: normalized positions 1..H frames ago, (N, H, 2), NaN where the track did not exist yet
+        self.hist = np.zeros((0, max(config.ransac_window, 1), 2))
         self._prev_ids = np.zeros(0, dtype=np.int64)
         self._lk = {
             "winSize": (config.klt_window, config.klt_window),
@@ -185,7 +191,7 @@ class CameraTracker:
 
     def keep(self, mask: BoolArray) -> None:
         self.pts, self.ids, self.ages = self.pts[mask], self.ids[mask], self.ages[mask]
-        self.xy, self.prev_xy = self.xy[mask], self.prev_xy[mask]
+        self.xy, self.prev_xy, self.hist = self.xy[mask], self.prev_xy[mask], self.hist[mask]
 
     def track(self, gray: NDArray[np.uint8]) -> int:
         """Track into a new image; returns how many tracks the forward-backward check dropped."""
@@ -194,6 +200,7 @@ class CameraTracker:
             raise ValueError(f"image is {gray.shape[1]}x{gray.shape[0]} but the camera model says {w}x{h}")
         prev, self.gray = self.gray, gray
         self.prev_xy = self.xy.copy()
+        self.hist = np.concatenate([self.xy[:, None, :], self.hist[:, :-1]], axis=1)
         if prev is None or len(self) == 0:
             return 0
         p0 = self.pts.reshape(-1, 1, 2)
@@ -260,6 +267,7 @@ class CameraTracker:
         self.ages = np.concatenate([self.ages, np.zeros(n, dtype=np.int64)])
         self.xy = np.vstack([self.xy, self.camera.undistort_points(new.astype(np.float64))])
         self.prev_xy = np.vstack([self.prev_xy, np.full((n, 2), np.nan)])
+        self.hist = np.concatenate([self.hist, np.full((n, self.hist.shape[1], 2), np.nan)])
 
     def tracked(self) -> BoolArray:
         """Tracks that also existed in the previous frame."""
@@ -351,34 +359,50 @@ class Frontend:
 
     # ------------------------------------------------------------------ static camera
     def _reject_static(self) -> None:
+        """Essential-matrix RANSAC between consecutive frames, and between this frame and
+        ``ransac_window`` frames ago for the tracks that old (a longer baseline constrains the
+        translation far better, so a small independently moving cluster that fooled the
+        two-frame test is caught after at most ``ransac_window`` frames)."""
         s = self.static
         self._static_motion = None
         self._static_pair = None
-        both = s.tracked()
+        keep = np.ones(len(s), dtype=bool)
+        for lag in sorted({1, max(self.config.ransac_window, 1)}):
+            x0 = s.prev_xy if lag == 1 else s.hist[:, lag - 1]
+            inl = self._ransac(x0, s.xy, s.camera, store=lag == 1)
+            if inl is not None:
+                keep &= inl
+        s.keep(keep)
+
+    def _ransac(self, x0: FloatArray, x1: FloatArray, camera: CameraModel, store: bool) -> BoolArray | None:
+        """Inlier mask over all tracks (tracks without an ``x0`` are inliers); None if not run."""
+        both = np.isfinite(x0[:, 0])
         n = int(both.sum())
         if n < 8:
-            return
-        x0, x1 = s.prev_xy[both], s.xy[both]
-        f = float(np.mean(s.camera.intrinsics[:2]))
-        if np.median(np.linalg.norm(x1 - x0, axis=1)) * f < self.config.min_parallax:
-            return
+            return None
+        a, b = x0[both], x1[both]
+        f = float(np.mean(camera.intrinsics[:2]))
+        if np.median(np.linalg.norm(b - a, axis=1)) * f < self.config.min_parallax:
+            return None
         E, mask = cv2.findEssentialMat(
-            x0,
-            x1,
+            a,
+            b,
             np.eye(3),
-            method=cv2.RANSAC,
+            method=cv2.USAC_ACCURATE,
             prob=self.config.ransac_confidence,
             threshold=self.config.ransac_threshold / f,
+            maxIters=1000,
         )
         if E is None or mask is None or E.shape != (3, 3):
-            return
+            return None
         inl = mask.ravel().astype(bool)
         self.stats.ransac_tested += n
         self.stats.ransac_rejected += int((~inl).sum())
-        keep = np.ones(len(s), dtype=bool)
-        keep[np.flatnonzero(both)[~inl]] = False
-        self._static_pair = (x0[inl], x1[inl], E)
-        s.keep(keep)
+        if store:
+            self._static_pair = (a[inl], b[inl], E)
+        out = np.ones(x0.shape[0], dtype=bool)
+        out[np.flatnonzero(both)[~inl]] = False
+        return out
 
     def static_motion(self) -> tuple[FloatArray, FloatArray] | None:
         """(R, t) of the static camera between the last two frames from its tracks (|t| = 1), or
@@ -391,22 +415,36 @@ class Frontend:
 
     # ------------------------------------------------------------------ gimbal camera
     def reject_dynamic(self, hint: GimbalHint) -> IntArray:
-        """Second stage of the gimbal-camera outlier handling; returns the ids removed.
-
-        With the extrinsics of the previous and the current frame, the gimbal camera's motion is
-        ``T_{d1 d0} = T_ds(theta_1) T_{s1 s0} T_ds(theta_0)^-1``; gimbal tracks whose Sampson
-        error under that motion exceeds ``dynamic_threshold`` pixels are removed (a motion with
-        no translation uses the rotation-only prediction and ``dynamic_rotation_threshold``).
-        Without ``hint.T_s_cur_prev`` the static rotation and translation direction estimated
-        from the static tracks are used; without those (too little parallax) a pure rotation
-        of the static camera by zero is assumed.
-        """
+        """Second stage of the gimbal-camera outlier handling: remove the tracks that
+        :meth:`dynamic_outliers` flags and return their ids (for the back end to drop)."""
         d = self.dynamic
         if d is None:
             return np.zeros(0, dtype=np.int64)
+        bad = self.dynamic_outliers(hint)
+        removed = d.ids[bad].copy()
+        d.keep(~bad)
+        self.stats.dynamic_rejected += int(removed.shape[0])
+        return removed
+
+    def dynamic_outliers(self, hint: GimbalHint) -> BoolArray:
+        """Gimbal tracks inconsistent with the extrinsics of ``hint`` (mask over the current tracks).
+
+        With the extrinsics of the previous and the current frame, the gimbal camera's motion is
+        ``T_{d1 d0} = T_ds(theta_1) T_{s1 s0} T_ds(theta_0)^-1``; tracks whose Sampson error
+        under that motion exceeds ``dynamic_threshold`` pixels are outliers (a motion with no
+        translation uses the rotation-only prediction and ``dynamic_rotation_threshold``).
+        Without ``hint.T_s_cur_prev`` the static rotation and translation direction estimated
+        from the static tracks are used (the lever arm of the gimbal is then neglected); without
+        those (too little parallax) the static camera is taken as not moving.  Tracks born in
+        this frame are never outliers.
+        """
+        d = self.dynamic
+        if d is None:
+            return np.zeros(0, dtype=bool)
+        bad = np.zeros(len(d), dtype=bool)
         both = d.tracked()
         if not np.any(both):
-            return np.zeros(0, dtype=np.int64)
+            return bad
         T0, T1 = np.asarray(hint.T_ds_prev, float), np.asarray(hint.T_ds_cur, float)
         if hint.T_s_cur_prev is not None:
             T_d = T1 @ np.asarray(hint.T_s_cur_prev, float) @ inv_se3(T0)
@@ -421,17 +459,12 @@ class Frontend:
         if np.linalg.norm(t_d) > 1e-6:
             T = np.eye(4)
             T[:3, :3], T[:3, 3] = R_d, t_d
-            bad = sampson_distance(essential(T), x0, x1) * f > self.config.dynamic_threshold
+            out = sampson_distance(essential(T), x0, x1) * f > self.config.dynamic_threshold
         else:
             pred, front = rotation_prediction(R_d, x0)
-            bad = ~front | (np.linalg.norm(pred - x1, axis=1) * f > self.config.dynamic_rotation_threshold)
-        idx = np.flatnonzero(both)[bad]
-        removed = d.ids[idx].copy()
-        keep = np.ones(len(d), dtype=bool)
-        keep[idx] = False
-        d.keep(keep)
-        self.stats.dynamic_rejected += int(removed.shape[0])
-        return removed
+            out = ~front | (np.linalg.norm(pred - x1, axis=1) * f > self.config.dynamic_rotation_threshold)
+        bad[np.flatnonzero(both)[out]] = True
+        return bad
 
     # ------------------------------------------------------------------ static <-> gimbal
     def _match(self) -> None:
