@@ -111,10 +111,17 @@ class BagWriter:
         self.write(topic, msgtype, stamp_ns, msg)
 
     def imu(
-        self, topic: str, stamp_ns: int, acc: NDArray[np.float64], gyro: NDArray[np.float64], frame_id: str = "imu"
+        self,
+        topic: str,
+        stamp_ns: int,
+        acc: NDArray[np.float64],
+        gyro: NDArray[np.float64],
+        frame_id: str = "imu",
+        record_ns: int | None = None,
     ) -> None:
         """``sensor_msgs/Imu``: specific force ``acc`` (m/s^2), rate ``gyro`` (rad/s); no orientation
-        (``orientation_covariance[0] = -1`` as the message definition asks)."""
+        (``orientation_covariance[0] = -1`` as the message definition asks).  ``record_ns`` sets a
+        record time different from the header stamp (as a driver's late messages have)."""
         t = self.typestore.types
         vec = t["geometry_msgs/msg/Vector3"]
         cov_none = np.zeros(9)
@@ -128,7 +135,7 @@ class BagWriter:
             linear_acceleration=vec(x=float(acc[0]), y=float(acc[1]), z=float(acc[2])),
             linear_acceleration_covariance=np.zeros(9),
         )
-        self.write(topic, IMU, stamp_ns, msg)
+        self.write(topic, IMU, stamp_ns if record_ns is None else record_ns, msg)
 
     def pose(self, topic: str, stamp_ns: int, T: NDArray[np.float64], frame_id: str = "world") -> None:
         """``geometry_msgs/PoseStamped`` of a 4x4 transform (child -> ``frame_id``, metres)."""
