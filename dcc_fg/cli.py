@@ -1,10 +1,12 @@
-"""Command-line interface: ``dcc-fg demo | calibrate | validate | intrinsics | simulate flight``."""
+"""Command-line interface: ``dcc-fg demo | calibrate | validate | intrinsics | simulate``."""
 
 from __future__ import annotations
 
 import argparse
 import sys
 from pathlib import Path
+
+import yaml
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
@@ -68,6 +70,31 @@ def _cmd_simulate_flight(args: argparse.Namespace) -> int:
     return 0
 
 
+def _add_reader_options(p: argparse.ArgumentParser) -> None:
+    """Options shared by calibrate and validate: image pairing, snapshot selection, output verbosity."""
+    p.add_argument(
+        "--sync-tolerance",
+        type=float,
+        default=5.0,
+        metavar="MS",
+        help="largest time difference between a static and a dynamic image of one snapshot, milliseconds; frames "
+        "without a partner are reported (default 5)",
+    )
+    p.add_argument(
+        "--min-common-points",
+        type=int,
+        default=8,
+        metavar="N",
+        help="use a snapshot only if both cameras see at least N of the same target corners (default 8)",
+    )
+    p.add_argument(
+        "--quiet",
+        action="store_true",
+        help="no progress bar and no summary table (the progress bar, on stderr, is also off when stderr is not "
+        "a terminal)",
+    )
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="dcc-fg",
@@ -95,8 +122,15 @@ def build_parser() -> argparse.ArgumentParser:
         "encoderless mode, the joint angles (rad) of every snapshot.",
     )
     c.add_argument("data", help="ROS1 .bag, ROS2 bag folder, image folder (cam0/, cam1/) or detection folder")
-    c.add_argument("--camchain", help="Kalibr camchain YAML with cam0 (static) and cam1 (dynamic) intrinsics")
-    c.add_argument("--target", help="Kalibr target YAML (checkerboard or aprilgrid); detection folders carry their own")
+    c.add_argument(
+        "--camchain",
+        help="Kalibr camchain YAML: cam0 (static) and cam1 (dynamic) intrinsics in pixels, distortion, resolution and, "
+        "for bags, each camera's image rostopic",
+    )
+    c.add_argument(
+        "--target",
+        help="Kalibr target YAML (checkerboard or aprilgrid; sizes in metres); detection folders carry their own",
+    )
     c.add_argument("--gimbal", help="initial kinematics YAML (joints, tau_s, tau_d, dh; rad and m)")
     c.add_argument("--joints", type=int, help="number of joints L when no --gimbal is given")
     c.add_argument(
@@ -117,9 +151,20 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="corner noise in pixels (1 sigma); default: estimated from the residuals",
     )
-    c.add_argument("--robust", choices=["huber", "cauchy"], default=None, help="per-corner robust loss")
+    c.add_argument(
+        "--robust",
+        choices=["huber", "cauchy"],
+        default=None,
+        help="per-corner robust loss (default: none, plain least squares)",
+    )
     c.add_argument("--robust-k", type=float, default=2.0, help="robust loss threshold in pixels (default 2)")
-    c.add_argument("--out", default="dcc_fg_calibration", help="output folder")
+    c.add_argument(
+        "--out",
+        default="dcc_fg_calibration",
+        help="output folder for calibration.yaml, joint_angles.csv (ns, rad) and summary.json; files are replaced "
+        "atomically and only after a successful run (default ./dcc_fg_calibration)",
+    )
+    _add_reader_options(c)
     c.set_defaults(func=_cmd_calibrate)
 
     v = sub.add_parser(
@@ -127,11 +172,21 @@ def build_parser() -> argparse.ArgumentParser:
         help="hold a calibration fixed and estimate only the joint angles of new snapshots",
         description="The paper's validation procedure: kinematics held at --calibration, joint angles (rad) estimated.",
     )
-    v.add_argument("data", help="bag, image folder or detection folder")
+    v.add_argument("data", help="ROS1 .bag, ROS2 bag folder, image folder (cam0/, cam1/) or detection folder")
     v.add_argument("--calibration", required=True, help="calibration.yaml written by dcc-fg calibrate")
-    v.add_argument("--camchain", help="Kalibr camchain YAML (default: the intrinsics stored in the calibration)")
-    v.add_argument("--target", help="Kalibr target YAML")
-    v.add_argument("--out", default="dcc_fg_validation", help="output folder")
+    v.add_argument(
+        "--camchain",
+        help="Kalibr camchain YAML (default: the intrinsics stored in the calibration; a bag then needs --camchain "
+        "for its image topics)",
+    )
+    v.add_argument("--target", help="Kalibr target YAML (checkerboard or aprilgrid; sizes in metres)")
+    v.add_argument(
+        "--out",
+        default="dcc_fg_validation",
+        help="output folder for calibration.yaml (the held kinematics), joint_angles.csv (ns, rad) and "
+        "summary.json; written only after a successful run (default ./dcc_fg_validation)",
+    )
+    _add_reader_options(v)
     v.set_defaults(func=_cmd_validate)
 
     i = sub.add_parser(
@@ -161,9 +216,16 @@ def build_parser() -> argparse.ArgumentParser:
     i.add_argument("--summary", help="optional JSON file with the parameters, 1-sigma and reprojection error")
     i.set_defaults(func=_cmd_intrinsics)
 
-    sim = sub.add_parser("simulate", help="simulators that write bags with ground truth")
-    sim_sub = sim.add_subparsers(dest="what", required=True)
-    f = sim_sub.add_parser(
+    s = sub.add_parser(
+        "simulate",
+        help="write simulated data sets with ground truth (rendered calibration images, VIO flights)",
+        description="Simulated data sets with ground truth. See 'dcc-fg simulate calibration --help'.",
+    )
+    s_sub = s.add_subparsers(dest="what", required=True)
+    from dcc_fg.sim.write_dataset import add_simulate_calibration_parser
+
+    add_simulate_calibration_parser(s_sub)
+    f = s_sub.add_parser(
         "flight",
         help="render a VIO flight (IMU, static and gimbal camera) into a ROS1/ROS2 bag",
         description="A body flying rounded-rectangle loops in a textured box room with a freely moving 2-joint "
@@ -190,6 +252,9 @@ def main(argv: list[str] | None = None) -> int:
         return int(args.func(args))
     except (ValueError, FileNotFoundError) as exc:
         print(f"dcc-fg {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except yaml.YAMLError as exc:
+        print(f"dcc-fg {args.command}: error: malformed YAML: {exc}", file=sys.stderr)
         return 2
 
 

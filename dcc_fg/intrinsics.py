@@ -323,6 +323,7 @@ def projection_jacobians(
     the 8 intrinsics ``[fx, fy, cx, cy, d1..d4]`` (2N, 8) and the view pose ``[rvec, tvec]``
     (2N, 6), from OpenCV's analytic projection Jacobians."""
     K, d = camera.K, camera.opencv_dist
+    p_t = np.ascontiguousarray(p_t, dtype=np.float64)  # OpenCV ignores the strides of a sliced array
     if camera.distortion_model == "equidistant":
         uv, J = cv2.fisheye.projectPoints(p_t.reshape(-1, 1, 3), rvec, tvec, K, d)
         return uv.reshape(-1, 2), J[:, 0:8], J[:, 8:14]  # columns f(2) c(2) k(4) om(3) T(3) alpha

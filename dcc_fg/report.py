@@ -166,3 +166,45 @@ def demo_table(s: dict[str, Any]) -> str:
         )
     )
     return "\n\n".join(out)
+
+
+def run_summary_table(stats: dict[str, Any]) -> str:
+    """End-of-run summary of ``dcc-fg calibrate`` / ``validate`` (from the run's ``statistics``).
+
+    Input counts (``stats["input"]``, from :func:`dcc_fg.io.dataset.load_dataset`'s report),
+    snapshots used / rejected, the reprojection table per camera, the observability of the
+    kinematic parameters (``stats["observability"]``) and the spread of the per-snapshot T_ds
+    standard deviations (``stats["T_ds_std"]``, mrad and mm).
+    """
+    lines = []
+    inp = stats.get("input")
+    if inp:
+        lines.append(
+            f"input ({inp['layout']}): {inp['pairs']} image pairs; unpaired frames: {inp['unpaired_static']} cam0, "
+            f"{inp['unpaired_dynamic']} cam1; target found in {inp['detected_static']} cam0 and "
+            f"{inp['detected_dynamic']} cam1 images"
+        )
+        lines.append(
+            f"snapshots: {inp['kept']} used, {inp['rejected']} rejected (fewer than {inp['min_common_points']} "
+            "target points seen by both cameras)"
+        )
+    lines.append(calibration_table(stats))
+    obs = stats.get("observability")
+    if obs:
+        fixed, dep = obs["gauge_fixed"], obs["gauge_dependent"]
+        lines.append(
+            f"observability (information matrix): {obs['n_observable']} of {obs['n_parameters']} kinematic "
+            f"parameters observable ({', '.join(obs['observable']) or 'none'})"
+            + (f"; held fixed to remove the gauge: {', '.join(fixed)}" if fixed else "")
+            + (f"; estimated but gauge-dependent (no std): {', '.join(dep)}" if dep else "")
+        )
+    tds = stats.get("T_ds_std")
+    if tds:
+        lines.append(
+            f"T_ds 1-sigma per snapshot: rotation median {tds['rotation_mrad']['median']:.3g} mrad "
+            f"(max {tds['rotation_mrad']['max']:.3g}), translation median {tds['translation_mm']['median']:.3g} mm "
+            f"(max {tds['translation_mm']['max']:.3g})"
+        )
+    elif stats.get("covariance", "ok") != "ok":
+        lines.append(f"T_ds 1-sigma: not available ({stats['covariance']})")
+    return "\n".join(lines)

@@ -5,8 +5,9 @@ d = right / cam1), so dcc-fg's bundle calibration with the intrinsics held is th
 likelihood problem ``cv2.stereoCalibrate(..., CALIB_FIX_INTRINSIC)`` solves: both must land on the
 same ``T_ds`` when given the same corners.
 
-* OpenCV's stereo sample (13 pairs, 9x6 chessboard, 0.025 m squares): intrinsics from
-  ``cv2.calibrateCamera`` per camera (k3 fixed at 0: our radtan model has 4 coefficients), then
+* OpenCV's stereo sample (13 pairs, 9x6 chessboard, 0.025 m squares): intrinsics of each camera
+  from :func:`dcc_fg.intrinsics.calibrate_intrinsics` (``cv2.calibrateCamera`` with k3 fixed at 0:
+  our radtan model has 4 coefficients), then
   both calibrations on the same corners; agreement within 1 mrad and 1 % of the baseline.
 * EuRoC cam_april (30 stereo frames of yac AprilGrid detections) with EuRoC's published
   intrinsics, against EuRoC's published ``T_c1c0 = inv(T_BS1) T_BS0``: within 2 mrad and 2 mm and
@@ -27,13 +28,16 @@ import numpy as np
 import pytest
 import yaml
 from conftest import shared_data as real
+from scipy.spatial.transform import Rotation
 
 from dcc_fg.calibrate import CalibrationOptions, CalibrationResult, calibrate
+from dcc_fg.cli import main
 from dcc_fg.data import CalibrationDataset, Observation, Snapshot, common_corners
 from dcc_fg.detection import detect_checkerboard
-from dcc_fg.io.camchain import CamchainEntry
+from dcc_fg.intrinsics import View, calibrate_intrinsics
+from dcc_fg.io.camchain import CamchainEntry, camchain_to_yaml
 from dcc_fg.io.dataset import load_dataset
-from dcc_fg.model import GimbalCalibration
+from dcc_fg.model import GimbalCalibration, load_calibration
 from dcc_fg.targets import TargetGeometry
 from factors.camera import CameraModel
 
@@ -44,7 +48,8 @@ L0 = GimbalCalibration(np.zeros(12), 0)  # tau_s is the gauge for L = 0; tau_d s
 
 def rotation_translation_error(T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, float]:
     """Angle of R_b^T R_a (rad) and |t_a - t_b| (m)."""
-    angle = float(np.linalg.norm(cv2.Rodrigues(T_b[:3, :3].T @ T_a[:3, :3])[0]))
+    # scipy's rotation vector is exact for tiny angles (cv2.Rodrigues returns 0 below 1e-5 rad)
+    angle = float(Rotation.from_matrix(T_b[:3, :3].T @ T_a[:3, :3]).magnitude())
     return angle, float(np.linalg.norm(T_a[:3, 3] - T_b[:3, 3]))
 
 
@@ -87,7 +92,7 @@ def T_ds_sigma(res: CalibrationResult) -> tuple[float, float]:
 
 
 def opencv_stereo_dataset(root: Path) -> CalibrationDataset:
-    """Detect the 9x6 board in all 13 pairs; intrinsics of each camera from cv2.calibrateCamera."""
+    """Detect the 9x6 board in all 13 pairs; intrinsics of each camera from its own 13 views."""
     obs_l, obs_r = [], []
     for k in OPENCV_PAIRS:
         for side, out in (("left", obs_l), ("right", obs_r)):
@@ -96,13 +101,10 @@ def opencv_stereo_dataset(root: Path) -> CalibrationDataset:
             obs = detect_checkerboard(img, CHESSBOARD)
             assert len(obs) == 54, f"{side}{k}.jpg: board not found"
             out.append(obs)
-    cams = []
-    for obs in (obs_l, obs_r):
-        obj = [CHESSBOARD.points[o.ids].astype(np.float32) for o in obs]
-        img = [o.pixels.astype(np.float32) for o in obs]
-        _, K, dist, _, _ = cv2.calibrateCamera(obj, img, (640, 480), None, None, flags=cv2.CALIB_FIX_K3)
-        d = dist.ravel()
-        cams.append(CameraModel((K[0, 0], K[1, 1], K[0, 2], K[1, 2]), "radtan", tuple(d[:4]), (640, 480)))
+    cams = [
+        calibrate_intrinsics([View(k, o, "") for k, o in enumerate(obs)], CHESSBOARD, (640, 480)).camera
+        for obs in (obs_l, obs_r)
+    ]
     snaps = [Snapshot(i, a, b) for i, (a, b) in enumerate(zip(obs_l, obs_r, strict=True))]
     return CalibrationDataset(cams[0], cams[1], CHESSBOARD.points, snaps, str(root))
 
@@ -180,8 +182,8 @@ def test_euroc_matches_published_extrinsics(euroc: tuple[CalibrationDataset, np.
     n = sum(len(s.static) for s in common.snapshots)
     print(
         f"\nEuRoC cam_april (30 frames, {n} common corners per camera, L=0) vs published T_c1c0: "
-        f"dcc-fg {rot_dcc * 1e3:.3f} mrad, {trans_dcc * 1e3:.3f} mm; cv2.stereoCalibrate {rot_cv * 1e3:.3f} mrad, "
-        f"{trans_cv * 1e3:.3f} mm; dcc-fg vs stereoCalibrate {rot_same * 1e3:.1e} mrad, {trans_same * 1e3:.1e} mm; "
+        f"dcc-fg {rot_dcc * 1e3:.4f} mrad, {trans_dcc * 1e3:.4f} mm; cv2.stereoCalibrate {rot_cv * 1e3:.4f} mrad, "
+        f"{trans_cv * 1e3:.4f} mm; dcc-fg vs stereoCalibrate {rot_same * 1e3:.1e} mrad, {trans_same * 1e3:.1e} mm; "
         f"dcc-fg formal 1-sigma {s_rot * 1e3:.3f} mrad, {s_trans * 1e3:.3f} mm; "
         f"RMS reprojection {res.reprojection_stats()['all']['rms_per_axis']:.3f} px/axis"
     )
@@ -219,3 +221,18 @@ def test_common_corners_keeps_ids_aligned() -> None:
     assert out.static.ids.tolist() == [2, 9] and out.dynamic.ids.tolist() == [2, 9]
     assert out.static.pixels.tolist() == [[2.0, 3.0], [6.0, 7.0]]
     assert out.timestamp_ns == 7
+
+
+def test_cli_calibrates_l0_without_gimbal_yaml(euroc: tuple[CalibrationDataset, np.ndarray], tmp_path: Path) -> None:
+    """``dcc-fg calibrate DATA --camchain C --joints 0`` needs no gimbal.yaml and gives calibrate()'s T_ds."""
+    data, _ = euroc
+    chain = {name: CamchainEntry(cam) for name, cam in (("cam0", data.static_camera), ("cam1", data.dynamic_camera))}
+    camchain = tmp_path / "camchain.yaml"
+    camchain.write_text(camchain_to_yaml(chain))
+    folder = real("euroc_aprilgrid") / "calib" / "cam_april"
+    out = tmp_path / "out"
+    assert main(["calibrate", str(folder), "--camchain", str(camchain), "--joints", "0", "--out", str(out)]) == 0
+    got = load_calibration(out / "calibration.yaml")
+    ref = calibrate(data, L0, CalibrationOptions(compute_covariance=False)).T_ds(0)
+    rot, trans = rotation_translation_error(got.T_ds(np.zeros(0)), ref)
+    assert rot < 1e-7 and trans < 1e-7

@@ -155,6 +155,7 @@ def load_dataset(
     min_common_points: int = 8,
     detector: Detector | None = None,
     progress: bool = True,
+    report: dict[str, object] | None = None,
 ) -> CalibrationDataset:
     """Read a bag, image folder or detection folder into a calibration dataset.
 
@@ -174,7 +175,12 @@ def load_dataset(
             same target points.
         detector: ``detector(image, target) -> Observation``; default
             :func:`dcc_fg.detection.detect_target`.
-        progress: show a tqdm progress bar over the image pairs.
+        progress: show a tqdm progress bar over the image pairs (on stderr).
+        report: if given, filled with counts for a summary: ``layout``, ``pairs`` (image pairs
+            after timestamp pairing), ``unpaired_static`` / ``unpaired_dynamic`` (frame counts
+            without a partner), ``detected_static`` / ``detected_dynamic`` (pairs where the
+            target was found), ``kept`` and ``rejected`` (pairs with / without
+            ``min_common_points`` common points).
 
     Returns:
         The dataset; ``source`` is ``path``.
@@ -196,7 +202,7 @@ def load_dataset(
     detector = detector or detect_target
 
     if layout == "detection_folder":
-        snapshots, geometry, _ = read_detection_folder(path, geometry, tolerance_ns)
+        snapshots, geometry, pairing = read_detection_folder(path, geometry, tolerance_ns)
         where = (str(path / STATIC_DIR), str(path / DYNAMIC_DIR))
     else:
         if geometry is None:
@@ -217,10 +223,22 @@ def load_dataset(
                 topics.append(topic)
             frames = BagImagePairs(path, topics[0], topics[1], joint_topic, tolerance_ns, joint_names)
             where = (f"{path}: topic {topics[0]}", f"{path}: topic {topics[1]}")
+        pairing = frames.pairing
         snapshots = _detect_frames(
             frames, len(frames), geometry, pair, (static_cam, dynamic_cam), detector, progress, f"detect {path.name}"
         )
     kept = _keep(snapshots, min_common_points, where, geometry)
+    if report is not None:
+        report.update(
+            layout=layout,
+            pairs=len(snapshots),
+            unpaired_static=len(pairing.unpaired_static),
+            unpaired_dynamic=len(pairing.unpaired_dynamic),
+            detected_static=sum(1 for s in snapshots if len(s.static) > 0),
+            detected_dynamic=sum(1 for s in snapshots if len(s.dynamic) > 0),
+            kept=len(kept),
+            rejected=len(snapshots) - len(kept),
+        )
     return CalibrationDataset(
         static_camera=pair[0].camera,
         dynamic_camera=pair[1].camera,

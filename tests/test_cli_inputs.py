@@ -1,0 +1,138 @@
+"""``dcc-fg calibrate`` / ``validate`` on a small rendered data set: summary, unpaired frames, bad input.
+
+Every bad input must give a clear error naming the file / topic / field, exit code != 0, and leave
+an existing OUT/calibration.yaml unchanged (nothing half-written).
+"""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import pytest
+import yaml
+
+from dcc_fg.cli import main
+from dcc_fg.io.bags import write_ros1_bag
+from dcc_fg.io.folders import ImageFolder
+from dcc_fg.sim.write_dataset import RenderedCalibration, write_calibration_dataset
+
+SENTINEL = "sentinel: previous calibration\n"
+
+
+@pytest.fixture(scope="module")
+def small(tmp_path_factory: pytest.TempPathFactory) -> RenderedCalibration:
+    return write_calibration_dataset(tmp_path_factory.mktemp("small"), "checkerboard", "folder", seed=5, n_snapshots=12)
+
+
+def _args(r: RenderedCalibration, data: Path, out: Path, **over: Path) -> list[str]:
+    files = {"camchain": r.camchain, "target": r.target, "gimbal": r.gimbal, **over}
+    argv = ["calibrate", str(data), "--out", str(out)]
+    for k, v in files.items():
+        argv += [f"--{k}", str(v)]
+    return argv
+
+
+def test_calibrate_prints_summary_and_reports_unpaired_frames(small: RenderedCalibration, tmp_path, capsys) -> None:  # noqa: ANN001
+    data = tmp_path / "images"
+    shutil.copytree(small.data, data)
+    sorted((data / "cam1").glob("*.png"))[3].unlink()  # one static frame loses its partner
+    out = tmp_path / "out"
+    assert main(_args(small, data, out)) == 0
+    captured = capsys.readouterr()
+    text = captured.out
+    assert "11 image pairs; unpaired frames: 1 cam0, 0 cam1" in text
+    assert "snapshots: 11 used, 0 rejected" in text
+    assert "RMS/axis px" in text and "static" in text and "dynamic" in text
+    assert "observability (information matrix)" in text and "held fixed to remove the gauge" in text
+    assert "T_ds 1-sigma per snapshot: rotation median" in text
+    assert "detect" not in captured.err  # no progress bar when stderr is not a terminal
+    # validate the same frames with the calibration's own intrinsics (no --camchain)
+    out2 = tmp_path / "val"
+    argv = ["validate", str(data), "--calibration", str(out / "calibration.yaml"), "--target", str(small.target)]
+    assert main([*argv, "--out", str(out2), "--quiet"]) == 0
+    assert capsys.readouterr().out == ""  # --quiet: no table
+    assert (out2 / "joint_angles.csv").is_file()
+
+
+def _fails(argv: list[str], out: Path, capsys: pytest.CaptureFixture[str], *needles: str) -> None:
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "calibration.yaml").write_text(SENTINEL)
+    assert main(argv) != 0
+    err = capsys.readouterr().err
+    for needle in needles:
+        assert needle in err, f"{needle!r} not in {err!r}"
+    assert (out / "calibration.yaml").read_text() == SENTINEL
+    assert sorted(p.name for p in out.iterdir()) == ["calibration.yaml"]  # nothing else written
+
+
+def test_bag_with_a_missing_topic(small: RenderedCalibration, tmp_path, capsys) -> None:  # noqa: ANN001
+    bag = write_ros1_bag(tmp_path / "small.bag", list(ImageFolder(small.data))[:3])
+    chain = yaml.safe_load(small.camchain.read_text())
+    chain["cam1"]["rostopic"] = "/gimbal_cam/image_raw"
+    camchain = tmp_path / "camchain.yaml"
+    camchain.write_text(yaml.safe_dump(chain))
+    _fails(_args(small, bag, tmp_path / "out", camchain=camchain), tmp_path / "out", capsys, "/gimbal_cam/image_raw")
+
+
+def test_camchain_without_cam1(small: RenderedCalibration, tmp_path, capsys) -> None:  # noqa: ANN001
+    chain = yaml.safe_load(small.camchain.read_text())
+    del chain["cam1"]
+    camchain = tmp_path / "camchain_one.yaml"
+    camchain.write_text(yaml.safe_dump(chain))
+    argv = _args(small, small.data, tmp_path / "out", camchain=camchain)
+    _fails(argv, tmp_path / "out", capsys, "camchain_one.yaml", "cam1")
+
+
+def test_camchain_missing_a_field(small: RenderedCalibration, tmp_path, capsys) -> None:  # noqa: ANN001
+    chain = yaml.safe_load(small.camchain.read_text())
+    del chain["cam0"]["distortion_coeffs"]
+    camchain = tmp_path / "camchain_bad.yaml"
+    camchain.write_text(yaml.safe_dump(chain))
+    argv = _args(small, small.data, tmp_path / "out", camchain=camchain)
+    _fails(argv, tmp_path / "out", capsys, "camchain_bad.yaml", "cam0", "distortion_coeffs")
+
+
+def test_target_missing_a_field(small: RenderedCalibration, tmp_path, capsys) -> None:  # noqa: ANN001
+    tgt = yaml.safe_load(small.target.read_text())
+    del tgt["targetRows"]
+    target = tmp_path / "target_bad.yaml"
+    target.write_text(yaml.safe_dump(tgt))
+    argv = _args(small, small.data, tmp_path / "out", target=target)
+    _fails(argv, tmp_path / "out", capsys, "target_bad.yaml", "targetRows")
+
+
+def test_corrupt_image(small: RenderedCalibration, tmp_path, capsys) -> None:  # noqa: ANN001
+    data = tmp_path / "images"
+    shutil.copytree(small.data, data)
+    broken = sorted((data / "cam1").glob("*.png"))[5]
+    broken.write_bytes(b"\x89PNG\r\n\x1a\n" + b"\x00" * 100)  # PNG signature, no image
+    _fails(_args(small, data, tmp_path / "out"), tmp_path / "out", capsys, str(broken), "does not decode")
+
+
+def test_malformed_yaml(small: RenderedCalibration, tmp_path, capsys) -> None:  # noqa: ANN001
+    gimbal = tmp_path / "gimbal_bad.yaml"
+    gimbal.write_text("joints: [2\ntau_s: ]")
+    _fails(
+        _args(small, small.data, tmp_path / "out", gimbal=gimbal), tmp_path / "out", capsys, "YAML", "gimbal_bad.yaml"
+    )
+
+
+@pytest.mark.parametrize("quiet", [False, True])
+def test_progress_bar_on_a_terminal_unless_quiet(
+    small: RenderedCalibration,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+    quiet: bool,
+) -> None:
+    """The bar goes to stderr on a terminal; --quiet turns it off.  (A run that stops after detection:
+    no pair has 1000 common corners, which also checks --min-common-points.)"""
+    import dcc_fg.pipeline
+
+    monkeypatch.setattr(dcc_fg.pipeline, "_stderr_is_terminal", lambda: True)
+    argv = _args(small, small.data, tmp_path / "out") + ["--min-common-points", "1000"] + (["--quiet"] if quiet else [])
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert "at least 1000 common target points" in err
+    assert ("detect images:" in err and "pair/s" in err) != quiet
