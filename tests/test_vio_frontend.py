@@ -206,6 +206,18 @@ def test_matching_a_rolled_gimbal_camera_without_extrinsics(flight: Flight) -> N
     assert np.percentile(np.concatenate(errs), 95) < 3.0
 
 
+def test_reset_starts_new_tracks(flight: Flight) -> None:
+    cal = flight.cal
+    fe = Frontend(cal.static_camera, cal.dynamic_camera)
+    first = fe.process(*flight.frames[0])
+    fe.reset()
+    t, a, b = flight.frames[20]  # one second later: no track may be carried across
+    after = fe.process(t, a, b)
+    assert after.static_ids.size > 50
+    assert not np.intersect1d(first.static_ids, after.static_ids).size
+    assert not np.intersect1d(first.dynamic_ids, after.dynamic_ids).size
+
+
 def test_bad_images_raise(flight: Flight) -> None:
     cal = flight.cal
     fe = Frontend(cal.static_camera, cal.dynamic_camera)

@@ -3,12 +3,14 @@
 Per synchronized frame pair (:meth:`Frontend.process`):
 
 1. **Static camera s**: pyramidal Lucas-Kanade tracking with a forward-backward check, then
-   RANSAC on the essential matrix between the previous and the current frame (undistorted
-   normalized coordinates, threshold in pixels / focal length; OpenCV's USAC with local
-   optimization: with the short baseline of consecutive frames plain RANSAC often prefers a
-   wrong model that absorbs a small independently moving cluster); frames with almost no
-   parallax skip RANSAC (the essential matrix is degenerate without translation).  New corners
-   (Shi-Tomasi) fill the image with a minimum spacing.
+   essential-matrix RANSAC (OpenCV's USAC with local optimization) on undistorted normalized
+   coordinates, threshold in pixels / focal length, twice: between the previous and the current
+   frame, and between the current frame and ``ransac_window`` frames ago for the tracks that
+   old.  Consecutive frames have a short baseline that leaves the translation weakly determined,
+   so a small independently moving cluster can fool the two-frame test for a frame or two; the
+   long-baseline test catches it.  Frames with almost no parallax skip RANSAC (the essential
+   matrix is degenerate without translation).  New corners (Shi-Tomasi) fill the image with a
+   minimum spacing.
 2. **Gimbal camera d**: tracked and refilled the same way, but *not* rejected with a motion
    model: the extrinsics T_ds(theta) change with the unknown joint angles, so an epipolar test
    with stale extrinsics removes exactly the measurements that would correct them (the paper,
@@ -302,6 +304,16 @@ class Frontend:
         self._static_pair: tuple[FloatArray, FloatArray, FloatArray] | None = None
 
     # ------------------------------------------------------------------ per frame
+    def reset(self) -> None:
+        """Forget every track (e.g. after a gap in the images: KLT cannot bridge seconds); the
+        next frame starts new tracks with new ids."""
+        for tracker in (self.static, self.dynamic):
+            if tracker is not None:
+                tracker.gray = None
+                tracker.keep(np.zeros(len(tracker), dtype=bool))
+        self._static_motion = None
+        self._static_pair = None
+
     def process(
         self,
         timestamp_ns: int,
