@@ -1,7 +1,8 @@
 """Benchmark: cost of the VIO front end and of the flight renderer, against real time and bare KLT.
 
-A short simulated flight (``FlightConfig.short(30)``, seed 0) is rendered at 640x480 from
-``--start`` s for ``--frames`` frame pairs (20 Hz; the default window contains gimbal slews), then:
+A short simulated flight (``FlightConfig.short(30)``, seed 0) is rendered at 640x480 (``--scale 0.5``:
+320x240) from ``--start`` s for ``--frames`` frame pairs (20 Hz; the default window contains gimbal
+slews), then:
 
 1. rendering: CPU time per image pair (static + gimbal camera);
 2. the front end (:class:`dcc_fg.vio.frontend.Frontend`: KLT with forward-backward check in both
@@ -21,12 +22,14 @@ Usage: ``python benchmarks/bench_frontend.py [--frames 200] [--start 4.0]``
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import time
 from pathlib import Path
 
 import cv2
 import numpy as np
 
+from dcc_fg.sim.flight_bag import scale_camera
 from dcc_fg.sim.flight_render import WorldRenderer, planes_from_world, render_flight
 from dcc_fg.sim.trajectory import FlightConfig, World, default_static_mount, flight_calibration, simulate_flight
 from dcc_fg.vio.frontend import Frontend, FrontendConfig
@@ -86,16 +89,24 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--frames", type=int, default=200, help="frame pairs to render and track (default 200 = 10 s)")
     p.add_argument("--start", type=float, default=4.0, help="first frame time, s (default 4.0: the first slew)")
+    p.add_argument("--scale", type=float, default=1.0, help="image scale relative to 640x480 (0.5: 320x240)")
     args = p.parse_args(argv)
     cfg = FlightConfig.short(30.0)
     truth = simulate_flight(cfg, seed=0)
-    cal = flight_calibration()
+    cal0 = flight_calibration()
+    assert cal0.static_camera is not None and cal0.dynamic_camera is not None
+    cal = dataclasses.replace(
+        cal0,
+        static_camera=scale_camera(cal0.static_camera, args.scale),
+        dynamic_camera=scale_camera(cal0.dynamic_camera, args.scale),
+    )
     renderer = WorldRenderer(planes_from_world(World.around(cfg)), seed=0)
     k0 = int(round(args.start * 20))
     c0 = time.process_time()
     frames = list(render_flight(renderer, truth, cal, default_static_mount(), frames=slice(k0, k0 + args.frames)))
     render_ms = 1e3 * (time.process_time() - c0) / max(len(frames), 1)
-    print(f"rendering: {render_ms:.1f} ms CPU per image pair (640x480, 2 cameras)")
+    w, h = cal.static_camera.resolution
+    print(f"rendering: {render_ms:.1f} ms CPU per image pair ({w}x{h}, 2 cameras)")
     theta0 = truth.theta[truth.index_of(truth.frame_t_ns[k0])][0]
     out = report("simulated flight", frames, Frontend(cal.static_camera, cal.dynamic_camera, T_ds=cal.T_ds(theta0)))
     out["render_ms"] = render_ms

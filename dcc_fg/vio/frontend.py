@@ -112,6 +112,20 @@ class FrontendConfig:
     dynamic_threshold: float = 2.0
     dynamic_rotation_threshold: float = 4.0
 
+    @staticmethod
+    def for_resolution(width: int, height: int) -> FrontendConfig:
+        """Defaults scaled to an image size: the fields above suit 640x480; smaller images get a
+        proportionally smaller spacing, a 15-pixel KLT window below 480 pixels of width and fewer
+        tracks below 400 (at 320x240 that halves the cost, see benchmarks/bench_frontend.py)."""
+        s = min(width / 640.0, height / 480.0)
+        if s >= 0.99:
+            return FrontendConfig()
+        return FrontendConfig(
+            min_distance=max(8.0, round(20.0 * s)),
+            klt_window=21 if width >= 480 else 15,
+            max_features=150 if width >= 400 else 120,
+        )
+
 
 @dataclass(frozen=True)
 class GimbalHint:
@@ -282,7 +296,7 @@ class Frontend:
     Args:
         static_camera: model of the static camera s.
         dynamic_camera: model of the gimbal camera d, or None (static camera only, ``mono``).
-        config: parameters.
+        config: parameters (default: :meth:`FrontendConfig.for_resolution` of the static camera).
         T_ds: initial estimate of static -> gimbal camera (4x4) for the matching check, or None.
     """
 
@@ -293,7 +307,7 @@ class Frontend:
         config: FrontendConfig | None = None,
         T_ds: FloatArray | None = None,
     ) -> None:
-        self.config = config or FrontendConfig()
+        self.config = config or FrontendConfig.for_resolution(*static_camera.resolution)
         self._ids = itertools.count()
         self.static = CameraTracker(static_camera, self.config, self._ids)
         self.dynamic = CameraTracker(dynamic_camera, self.config, self._ids) if dynamic_camera else None
