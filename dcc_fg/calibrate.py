@@ -477,6 +477,10 @@ def calibrate(
         N = null_space(S)
         observable = observable_mask(N)
         null_dim = N.shape[1] + 0
+        if L == 0:
+            # A rigid pair: all of tau_s is the gauge, so with tau_s held, tau_d is T_ds itself
+            # (T_ds = T_de(tau_d) T_bs(tau_s)) and every entry is determined by the images.
+            observable[6:12] = True
     else:
         observable = initial.observable if initial.observable is not None else np.zeros(len(kin), dtype=bool)
         null_dim = 0

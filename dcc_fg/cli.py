@@ -12,7 +12,7 @@ import yaml
 def _cmd_demo(args: argparse.Namespace) -> int:
     from dcc_fg.demo import run_demo
 
-    run_demo(Path(args.out), seed=args.seed, n_joints=args.joints)
+    run_demo(Path(args.out), seed=args.seed, n_joints=args.joints, report=getattr(args, "report", False))
     return 0
 
 
@@ -113,6 +113,7 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--out", default="dcc_fg_demo", help="output folder (default: ./dcc_fg_demo)")
     d.add_argument("--seed", type=int, default=0, help="random seed of the simulation (default 0)")
     d.add_argument("--joints", type=int, default=2, choices=[0, 1, 2, 3], help="number of gimbal joints L (default 2)")
+    d.add_argument("--report", action="store_true", help="also write OUT/report.pdf (tables and figures)")
     d.set_defaults(func=_cmd_demo)
 
     c = sub.add_parser(
@@ -165,6 +166,9 @@ def build_parser() -> argparse.ArgumentParser:
         "atomically and only after a successful run (default ./dcc_fg_calibration)",
     )
     _add_reader_options(c)
+    c.add_argument(
+        "--report", action="store_true", help="also save the figures (OUT/calibration_*.png) and OUT/report.pdf"
+    )
     c.set_defaults(func=_cmd_calibrate)
 
     v = sub.add_parser(
@@ -187,6 +191,9 @@ def build_parser() -> argparse.ArgumentParser:
         "summary.json; written only after a successful run (default ./dcc_fg_validation)",
     )
     _add_reader_options(v)
+    v.add_argument(
+        "--report", action="store_true", help="also save the figures (OUT/calibration_*.png) and OUT/report.pdf"
+    )
     v.set_defaults(func=_cmd_validate)
 
     i = sub.add_parser(

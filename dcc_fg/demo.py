@@ -18,7 +18,7 @@ import numpy as np
 
 from dcc_fg.calibrate import CalibrationOptions, CalibrationResult, calibrate
 from dcc_fg.io.outputs import write_joint_angles_csv, write_json
-from dcc_fg.report import demo_table
+from dcc_fg.report import demo_table, parameter_table
 from dcc_fg.sim.calibration_scene import SceneConfig, simulate_calibration
 from dcc_fg.sim.evaluation import cramer_rao_bound, evaluate_against_truth
 
@@ -39,8 +39,14 @@ def _errors(result: CalibrationResult, truth: Any, thetas: np.ndarray) -> dict[s
     return evaluate_against_truth(result, truth, thetas).as_dict()
 
 
-def run_demo(out_dir: Path, seed: int = 0, n_joints: int = 2, verbose: bool = True) -> dict[str, Any]:
-    """Run the demo; returns the summary dictionary (also written to ``out_dir/summary.json``)."""
+def run_demo(
+    out_dir: Path, seed: int = 0, n_joints: int = 2, verbose: bool = True, figures: bool = True, report: bool = False
+) -> dict[str, Any]:
+    """Run the demo; returns the summary dictionary (also written to ``out_dir/summary.json``).
+
+    ``figures`` saves the calibration figures (with the ground truth) as ``out_dir/calibration_*.png``;
+    ``report`` also writes ``out_dir/report.pdf`` (the demo table, then the figures).
+    """
     t0 = time.perf_counter()
     cfg = SceneConfig(n_joints=n_joints)
     sim = simulate_calibration(seed, cfg)
@@ -86,10 +92,26 @@ def run_demo(out_dir: Path, seed: int = 0, n_joints: int = 2, verbose: bool = Tr
     out_dir.mkdir(parents=True, exist_ok=True)
     res.calibration.save(out_dir / "calibration.yaml")
     write_joint_angles_csv(out_dir / "joint_angles.csv", res.timestamps_ns, res.joint_angles)
-    summary["total_time_s"] = time.perf_counter() - t0
+    summary["total_time_s"] = time.perf_counter() - t0  # simulation, calibrations, evaluation (figures: below)
+    figure_paths = []
+    t_fig = time.perf_counter()
+    if figures or report:
+        from dcc_fg.plots.output import write_calibration_outputs
+
+        figure_paths = write_calibration_outputs(
+            out_dir,
+            res,
+            demo_table(summary) + "\n\n" + parameter_table(res.calibration, sim.truth) if report else None,
+            truth=sim.truth,
+            thetas_true=sim.joints_calibration,
+            target_points=sim.calibration_set.target_points,
+        )
+    summary["figures_time_s"] = time.perf_counter() - t_fig
     write_json(out_dir / "summary.json", summary)
     if verbose:
         print(demo_table(summary))
         print(f"\nwrote {out_dir / 'calibration.yaml'}, {out_dir / 'joint_angles.csv'}, {out_dir / 'summary.json'}")
-        print(f"total time {summary['total_time_s']:.1f} s")
+        if figure_paths:
+            print("wrote " + ", ".join(str(p) for p in figure_paths))
+        print(f"total time {summary['total_time_s']:.1f} s (+ {summary['figures_time_s']:.1f} s for the figures)")
     return summary

@@ -128,7 +128,9 @@ def run_calibrate(args: argparse.Namespace) -> int:
         robust=args.robust,
         robust_k=args.robust_k,
     )
-    _write(Path(args.out), calibrate(data, initial, opts), report=report, quiet=getattr(args, "quiet", False))
+    result = calibrate(data, initial, opts)
+    _write(Path(args.out), result, report=report, quiet=getattr(args, "quiet", False))
+    _report(Path(args.out), result, data, args)
     return 0
 
 
@@ -144,4 +146,18 @@ def run_validate(args: argparse.Namespace) -> int:
     data = _load(args.data, camchain, args.target, **_load_options(args, report))
     result = calibrate(data, cal, CalibrationOptions(mode="validate"))
     _write(Path(args.out), result, report=report, quiet=getattr(args, "quiet", False))
+    _report(Path(args.out), result, data, args)
     return 0
+
+
+def _report(out: Path, result, data, args: argparse.Namespace) -> None:  # noqa: ANN001
+    """With ``--report``: the calibration figures as ``OUT/calibration_*.png`` and ``OUT/report.pdf``."""
+    if not getattr(args, "report", False):
+        return
+    from dcc_fg.plots.output import write_calibration_outputs
+    from dcc_fg.report import parameter_table
+
+    text = run_summary_table(result.calibration.statistics) + "\n\n" + parameter_table(result.calibration)
+    paths = write_calibration_outputs(out, result, text, target_points=data.target_points)
+    if not getattr(args, "quiet", False):
+        print("wrote " + ", ".join(str(p) for p in paths))

@@ -1,4 +1,4 @@
-"""Text summary tables (figures come with the reporting issue)."""
+"""Text summary tables, and the figures of :mod:`dcc_fg.plots` re-exported."""
 
 from __future__ import annotations
 
@@ -208,3 +208,54 @@ def run_summary_table(stats: dict[str, Any]) -> str:
     elif stats.get("covariance", "ok") != "ok":
         lines.append(f"T_ds 1-sigma: not available ({stats['covariance']})")
     return "\n".join(lines)
+
+
+def parameter_table(cal: Any, truth: Any = None) -> str:
+    """Kinematic parameters of a ``GimbalCalibration``: status (observable / gauge-fixed / unobservable),
+    estimate, 1-sigma and, when given, the truth (radians and metres)."""
+    from dcc_fg.plots.calibration import parameter_status
+
+    std = cal.kin_std if cal.kin_std is not None else np.full(len(cal.kin), np.nan)
+    header = ["parameter", "status", "estimate", "1-sigma"] + (["truth"] if truth is not None else [])
+    rows = []
+    for k, (name, st) in enumerate(zip(cal.names, parameter_status(cal), strict=True)):
+        row = [name, st, f"{cal.kin[k]: .6f}", _fmt(float(std[k]))]
+        if truth is not None:
+            row.append(f"{truth.kin[k]: .6f}")
+        rows.append(row)
+    return _rows("Kinematic parameters (rad, m)", header, rows)
+
+
+# Figures (matplotlib, pyplot-free) live in dcc_fg.plots; re-exported here so callers find them with the tables.
+from dcc_fg.plots import (  # noqa: E402
+    calibration_figures,
+    chain_figure,
+    coverage_figure,
+    error_over_distance_figure,
+    joint_angles_figure,
+    parameter_figure,
+    residual_figure,
+    save_figure,
+    snapshot_error_figure,
+    trajectory_topview_figure,
+    write_calibration_outputs,
+    write_report_pdf,
+)
+
+__all__ = [
+    "calibration_figures",
+    "calibration_table",
+    "chain_figure",
+    "coverage_figure",
+    "demo_table",
+    "error_over_distance_figure",
+    "joint_angles_figure",
+    "parameter_figure",
+    "parameter_table",
+    "residual_figure",
+    "save_figure",
+    "snapshot_error_figure",
+    "trajectory_topview_figure",
+    "write_calibration_outputs",
+    "write_report_pdf",
+]

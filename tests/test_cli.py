@@ -26,6 +26,7 @@ def test_demo_writes_outputs(tmp_path, capsys) -> None:
     assert set(gt) == {"bundle", "two_way"}
     assert summary["calibration"]["reprojection_error_px"]["all"]["count"] == 81 * 63 * 2
     assert summary["total_time_s"] < 60
+    assert len(list(out.glob("calibration_*.png"))) == 5  # the demo saves its calibration figures
 
 
 def test_cli_reports_bad_input_cleanly(tmp_path, capsys) -> None:

@@ -89,3 +89,19 @@ def test_ground_truth_reader_rejects_other_files(tmp_path) -> None:  # noqa: ANN
     p.write_text(yaml.safe_dump({"joints": 2}))
     with pytest.raises(ValueError, match="not a dcc-fg ground truth"):
         load_ground_truth(p)
+
+
+def test_equidistant_camera() -> None:
+    """The inverse mapping works for any camera model: a fisheye (equidistant) lens, 5 views."""
+    cam = CameraModel((380.0, 380.0, 319.5, 239.5), "equidistant", (0.02, -0.01, 0.004, -0.001), (640, 480))
+    tg = default_target("checkerboard")
+    sim = simulate_calibration(3, scene_config(tg, 5))
+    tex = make_texture(tg)
+    errors = []
+    for k, T in enumerate(_rendered_poses(sim)):
+        obs = detect_target(render_view(cam, T, tex, RenderConfig(), np.random.default_rng(k)), tg)
+        assert len(obs) == tg.points.shape[0]
+        p = tg.points[obs.ids] @ T[:3, :3].T + T[:3, 3]
+        errors.append(obs.pixels - cam.project(p, jacobian=False)[0])
+    e = np.concatenate(errors)
+    assert np.sqrt(np.mean(e**2)) < 0.06 and np.abs(e).max() < 0.3

@@ -10,8 +10,8 @@ Rendering is per-pixel inverse mapping, so the lens model is applied exactly, no
    ``T_ct = [R | t]`` (target -> camera) the plane point ``(x, y)`` (metres, target frame) is
    ``q = [R_1 R_2 t]^-1 (x_n, y_n, 1)``, ``(x, y) = q_12 / q_3``; rays with ``q_3 <= 0`` (target
    behind the camera) see the background;
-3. the board texture (an area-averaged raster of the printed board, see :class:`BoardTexture`)
-   is sampled there bilinearly (``cv2.remap``) and the sub-pixel samples are averaged back to one
+3. the board texture (a raster of the printed board, see :func:`make_texture`, blurred as in
+   step 4) is sampled there bilinearly (``cv2.remap``) and the sub-pixel samples are averaged back to one
    pixel (``cv2.resize`` with ``INTER_AREA``, an exact box filter for integer factors);
 4. optics blur is applied to the board texture before it is sampled (a Gaussian of
    ``blur_sigma_px`` image pixels at the board centre's depth, converted to texels), which
@@ -24,7 +24,8 @@ metres; the same corner geometry as :class:`~dcc_fg.targets.TargetGeometry`):
 
 * ``checkerboard``: ``(cols + 1) x (rows + 1)`` squares around the inner corners, the square
   touching only corner 0 (outside the corner grid) black, as :mod:`dcc_fg.detection` expects,
-  plus a white margin of one square.
+  plus a white margin of one square; seen from the side the target z axis points away from
+  (the detector's handedness, and the simulator's board poses).
 * ``aprilgrid`` (Kalibr): tag36h11 tags (OpenCV's ``DICT_APRILTAG_36h11`` bit patterns) with a
   2-cell black border, black squares of side ``tagSpacing * tagSize`` at every tag corner, a
   white margin.  The tag images are placed so that a camera on the side the target z axis
