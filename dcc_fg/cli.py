@@ -54,6 +54,22 @@ def _cmd_intrinsics(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_simulate_flight(args: argparse.Namespace) -> int:
+    from dcc_fg.sim.flight_bag import write_flight
+    from dcc_fg.sim.trajectory import FlightConfig
+
+    if args.duration is not None and args.pattern == "loops":
+        raise ValueError("--duration and --pattern loops exclude each other (the loops take 90 s)")
+    config = FlightConfig.short(args.duration) if args.duration is not None else FlightConfig()
+    res = write_flight(args.out, args.format, config, seed=args.seed, scale=args.scale, progress=not args.quiet)
+    print(
+        f"wrote {res.bag} ({res.frames} frame pairs, {res.truth.distance:.1f} m, "
+        f"{res.render_ms_per_pair:.1f} ms CPU rendering per pair, {res.seconds:.1f} s), {res.calibration}, "
+        f"{res.ground_truth}, {res.joints}"
+    )
+    return 0
+
+
 def _add_reader_options(p: argparse.ArgumentParser) -> None:
     """Options shared by calibrate and validate: image pairing, snapshot selection, output verbosity."""
     p.add_argument(
@@ -216,13 +232,31 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser(
         "simulate",
-        help="write simulated data sets with ground truth (rendered calibration images)",
+        help="write simulated data sets with ground truth (rendered calibration images, VIO flights)",
         description="Simulated data sets with ground truth. See 'dcc-fg simulate calibration --help'.",
     )
     s_sub = s.add_subparsers(dest="what", required=True)
     from dcc_fg.sim.write_dataset import add_simulate_calibration_parser
 
     add_simulate_calibration_parser(s_sub)
+    f = s_sub.add_parser(
+        "flight",
+        help="render a VIO flight (IMU, static and gimbal camera) into a ROS1/ROS2 bag",
+        description="A body flying rounded-rectangle loops in a textured box room with a freely moving 2-joint "
+        "gimbal: /imu0 (200 Hz), /cam0/image_raw (static) and /cam1/image_raw (gimbal) at 20 Hz, truth on "
+        "/ground_truth/pose and /ground_truth/joints; also calibration.yaml (with an imu: section), "
+        "ground_truth.tum and ground_truth_joints.csv.",
+    )
+    f.add_argument("--out", required=True, help="output folder")
+    f.add_argument("--format", default="ros2", choices=["ros1", "ros2"], help="bag format (default ros2)")
+    f.add_argument("--duration", type=float, help="one short loop (16 m x 8 m) flown in this many seconds")
+    f.add_argument(
+        "--pattern", choices=["loops"], help="the paper's two 30 m x 15 m loops, ~180 m in 90 s (the default)"
+    )
+    f.add_argument("--seed", type=int, default=0, help="seed of the IMU noise, textures and image noise")
+    f.add_argument("--scale", type=float, default=1.0, help="image resolution relative to 640x480 (default 1)")
+    f.add_argument("--quiet", action="store_true", help="no progress bar")
+    f.set_defaults(func=_cmd_simulate_flight)
     return p
 
 

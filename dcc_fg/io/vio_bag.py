@@ -1,0 +1,279 @@
+"""Read a VIO bag: IMU samples and synchronized camera frames, merged in time order.
+
+:class:`VioBag` makes a first pass over the bag that reads the whole IMU topic (a few MB even
+for an hour at 200 Hz) and the image header stamps, validates them and pairs the static and
+gimbal image stamps; iterating makes a second pass that decodes the images as they come and
+yields, in time order, :class:`~dcc_fg.vio.types.ImuSamples` chunks (every IMU sample up to and
+including the next frame's time) and :class:`VioFrame` objects.  Only the images waiting for
+their partner are held in memory.
+
+Bad input (each named by bag, topic and time):
+
+* a missing IMU or image topic, or a topic of the wrong message type: ``ValueError`` listing
+  the bag's topics;
+* IMU samples with non-finite values: dropped, with a warning (``ValueError`` if more than
+  ``max_bad_imu_fraction`` of them are bad);
+* IMU stamps that go backwards or repeat: the offending samples are dropped with a warning
+  (``ValueError`` beyond ``max_bad_imu_fraction``);
+* gaps: an IMU gap longer than ``max_imu_gap_s`` or an image gap longer than
+  ``max_image_gap_s`` is logged, listed in :attr:`VioBag.imu_gaps` / :attr:`VioBag.image_gaps`,
+  and the first frame after an image gap (or after an IMU gap ending before it) carries
+  ``after_gap=True`` so the estimator can re-initialize instead of integrating across it.
+
+Units: ns, m/s^2 (``linear_acceleration``), rad/s (``angular_velocity``).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from dcc_fg.detection import to_gray8
+from dcc_fg.io.bags import COMPRESSED_IMAGE, IMAGE, bag_messages, decode_image, open_bag, stamp_ns
+from dcc_fg.io.pairing import DEFAULT_TOLERANCE_NS, pair_timestamps
+from dcc_fg.vio.types import ImuSamples
+
+log = logging.getLogger(__name__)
+
+IMU_TYPE = "sensor_msgs/msg/Imu"
+
+
+@dataclass(frozen=True)
+class VioFrame:
+    """One synchronized frame: grey 8-bit images (``dynamic`` None in a static-only bag).
+
+    ``timestamp_ns`` is the static image's stamp; ``after_gap`` marks the first frame after an
+    image or IMU gap.
+    """
+
+    timestamp_ns: int
+    static: NDArray[np.uint8]
+    dynamic: NDArray[np.uint8] | None = None
+    dynamic_timestamp_ns: int = 0
+    after_gap: bool = False
+
+
+@dataclass
+class ImuCheck:
+    """What the IMU validation found."""
+
+    n_read: int = 0
+    non_finite: int = 0
+    out_of_order: int = 0
+    gaps: list[tuple[int, int]] = field(default_factory=list)
+
+
+def validate_imu(
+    t_ns: NDArray[np.int64],
+    acc: NDArray[np.float64],
+    gyro: NDArray[np.float64],
+    where: str,
+    max_gap_s: float = 0.05,
+    max_bad_fraction: float = 0.01,
+) -> tuple[ImuSamples, ImuCheck]:
+    """Drop non-finite and non-increasing samples (in bag order), find gaps; see the module docstring.
+
+    Raises:
+        ValueError: naming ``where`` when there are no usable samples or too many bad ones.
+    """
+    check = ImuCheck(n_read=int(t_ns.shape[0]))
+    if check.n_read == 0:
+        raise ValueError(f"{where}: no IMU messages")
+    finite = np.all(np.isfinite(acc), axis=1) & np.all(np.isfinite(gyro), axis=1)
+    check.non_finite = int((~finite).sum())
+    if check.non_finite:
+        first = int(t_ns[np.flatnonzero(~finite)[0]])
+        log.warning("%s: dropped %d IMU samples with NaN/inf values (first at %d ns)", where, check.non_finite, first)
+    keep = finite.copy()
+    # a sample must be later than every kept sample before it (running maximum of kept stamps)
+    kept_t = np.where(finite, t_ns, np.iinfo(np.int64).min)
+    prev_max = np.maximum.accumulate(np.concatenate([[np.iinfo(np.int64).min], kept_t[:-1]]))
+    backwards = finite & (t_ns <= prev_max)
+    check.out_of_order = int(backwards.sum())
+    if check.out_of_order:
+        i = int(np.flatnonzero(backwards)[0])
+        log.warning(
+            "%s: dropped %d IMU samples whose stamps go backwards or repeat (first at %d ns, after %d ns)",
+            where,
+            check.out_of_order,
+            int(t_ns[i]),
+            int(prev_max[i]),
+        )
+    keep &= ~backwards
+    bad = check.n_read - int(keep.sum())
+    if bad > max_bad_fraction * check.n_read or keep.sum() < 2:
+        raise ValueError(
+            f"{where}: {bad} of {check.n_read} IMU samples are unusable "
+            f"({check.non_finite} NaN/inf, {check.out_of_order} with stamps going backwards or repeating)"
+        )
+    t, a, g = t_ns[keep], acc[keep], gyro[keep]
+    dt = np.diff(t)
+    for i in np.flatnonzero(dt > max_gap_s * 1e9):
+        check.gaps.append((int(t[i]), int(t[i + 1])))
+        log.warning("%s: IMU gap of %.3f s from %d ns to %d ns", where, dt[i] / 1e9, int(t[i]), int(t[i + 1]))
+    return ImuSamples(t_ns=t, acc=a, gyro=g), check
+
+
+class VioBag:
+    """IMU and image frames of a ROS1/ROS2 bag, streamed in time order (module docstring).
+
+    Args:
+        path: ROS1 ``.bag`` file or ROS2 bag folder.
+        imu_topic: ``sensor_msgs/Imu`` topic.
+        static_topic: static-camera image topic (``Image`` or ``CompressedImage``).
+        dynamic_topic: gimbal-camera image topic, or None (static camera only).
+        tolerance_ns: pairing tolerance of the two image streams.
+        max_image_gap_s, max_imu_gap_s: longer gaps are reported (logged, ``after_gap``).
+        max_bad_imu_fraction: more bad IMU samples than this fraction is an error.
+    """
+
+    def __init__(
+        self,
+        path: str | Path,
+        imu_topic: str,
+        static_topic: str,
+        dynamic_topic: str | None = None,
+        tolerance_ns: int = DEFAULT_TOLERANCE_NS,
+        max_image_gap_s: float = 0.5,
+        max_imu_gap_s: float = 0.05,
+        max_bad_imu_fraction: float = 0.01,
+    ) -> None:
+        self.path = Path(path)
+        self.imu_topic, self.static_topic, self.dynamic_topic = imu_topic, static_topic, dynamic_topic
+        topics = [imu_topic, static_topic] + ([dynamic_topic] if dynamic_topic else [])
+        t_imu: list[int] = []
+        rows: list[tuple[float, ...]] = []
+        stamps: dict[str, list[int]] = {static_topic: [], **({dynamic_topic: []} if dynamic_topic else {})}
+        with open_bag(self.path) as reader:
+            conns = self._connections(reader, topics)
+            for conn, t, msg in bag_messages(self.path, reader, conns):
+                if conn.topic == imu_topic:
+                    t_imu.append(stamp_ns(msg, t))
+                    a, w = msg.linear_acceleration, msg.angular_velocity
+                    rows.append((a.x, a.y, a.z, w.x, w.y, w.z))
+                else:
+                    stamps[conn.topic].append(stamp_ns(msg, t))
+        where = f"{self.path}: topic {imu_topic}"
+        data = np.array(rows, dtype=float).reshape(-1, 6)
+        self.imu, self.imu_check = validate_imu(
+            np.array(t_imu, dtype=np.int64), data[:, :3], data[:, 3:], where, max_imu_gap_s, max_bad_imu_fraction
+        )
+        self.imu_gaps = self.imu_check.gaps
+        self._stamps = stamps
+        s = stamps[static_topic]
+        if not s:
+            raise ValueError(f"{self.path}: topic {static_topic} has no messages")
+        if dynamic_topic:
+            if not stamps[dynamic_topic]:
+                raise ValueError(f"{self.path}: topic {dynamic_topic} has no messages")
+            pairing = pair_timestamps(s, stamps[dynamic_topic], tolerance_ns)
+            if not pairing.pairs:
+                raise ValueError(
+                    f"{self.path}: no image of {static_topic} has a partner on {dynamic_topic} "
+                    f"within {tolerance_ns / 1e6:g} ms"
+                )
+            if pairing.unpaired_static or pairing.unpaired_dynamic:
+                log.warning("%s: %s", self.path, pairing.summary(static_topic, dynamic_topic))
+            self._pairs = pairing.pairs
+        else:
+            self._pairs = [(i, -1) for i in range(len(s))]
+        self.frame_times = np.array(sorted(s[i] for i, _ in self._pairs), dtype=np.int64)
+        self.image_gaps: list[tuple[int, int]] = []
+        dt = np.diff(self.frame_times)
+        for i in np.flatnonzero(dt > max_image_gap_s * 1e9):
+            gap = (int(self.frame_times[i]), int(self.frame_times[i + 1]))
+            self.image_gaps.append(gap)
+            log.warning("%s: image gap of %.3f s from %d ns to %d ns", self.path, dt[i] / 1e9, *gap)
+        self._gap_starts = self._frames_after_gaps()
+
+    # -- first-pass helpers ----------------------------------------------------------------------
+    def _connections(self, reader, topics: list[str]):  # type: ignore[no-untyped-def]
+        available = sorted({f"{c.topic} ({c.msgtype})" for c in reader.connections})
+        conns = []
+        for topic in topics:
+            found = [c for c in reader.connections if c.topic == topic]
+            if not found:
+                raise ValueError(f"{self.path}: topic {topic} not found; the bag has: {', '.join(available)}")
+            want = (IMU_TYPE,) if topic == self.imu_topic else (IMAGE, COMPRESSED_IMAGE)
+            for c in found:
+                if c.msgtype not in want:
+                    raise ValueError(f"{self.path}: topic {topic} has type {c.msgtype}, expected {' or '.join(want)}")
+            conns += found
+        return conns
+
+    def _frames_after_gaps(self) -> set[int]:
+        """Frame stamps that come first after an image gap or after an IMU gap."""
+        out = {b for _, b in self.image_gaps}
+        for _, b in self.imu_gaps:
+            k = int(np.searchsorted(self.frame_times, b))
+            if k < self.frame_times.size:
+                out.add(int(self.frame_times[k]))
+        return out
+
+    def __len__(self) -> int:
+        return len(self._pairs)
+
+    @property
+    def duration_s(self) -> float:
+        """Time span of the frames, seconds."""
+        return float(self.frame_times[-1] - self.frame_times[0]) / 1e9 if self.frame_times.size > 1 else 0.0
+
+    # -- streaming -------------------------------------------------------------------------------
+    def __iter__(self) -> Iterator[ImuSamples | VioFrame]:
+        """Second pass: IMU chunks and frames in time order (IMU up to and including each frame time)."""
+        imu = self.imu
+        imu_pos = 0
+        pending = self._pending_frames()
+        for frame in pending:
+            end = int(np.searchsorted(imu.t_ns, frame.timestamp_ns, side="right"))
+            if end > imu_pos:
+                yield ImuSamples(imu.t_ns[imu_pos:end], imu.acc[imu_pos:end], imu.gyro[imu_pos:end])
+                imu_pos = end
+            yield frame
+        if imu_pos < len(imu):
+            yield ImuSamples(imu.t_ns[imu_pos:], imu.acc[imu_pos:], imu.gyro[imu_pos:])
+
+    def frames(self) -> Iterator[VioFrame]:
+        """Only the frames, in time order."""
+        yield from self._pending_frames()
+
+    def _pending_frames(self) -> Iterator[VioFrame]:
+        s_topic, d_topic = self.static_topic, self.dynamic_topic
+        pair_of = {s_topic: {i: n for n, (i, _) in enumerate(self._pairs)}}
+        if d_topic:
+            pair_of[d_topic] = {j: n for n, (_, j) in enumerate(self._pairs)}
+        count = dict.fromkeys(pair_of, 0)
+        pending: dict[int, dict[str, tuple[NDArray[np.uint8], int]]] = {}
+        ready: dict[int, VioFrame] = {}
+        next_out = 0
+        order = sorted(range(len(self._pairs)), key=lambda n: self._stamps[s_topic][self._pairs[n][0]])
+        rank = {n: r for r, n in enumerate(order)}
+        need = 2 if d_topic else 1
+        with open_bag(self.path) as reader:
+            conns = [c for c in reader.connections if c.topic in pair_of]
+            for conn, t, msg in bag_messages(self.path, reader, conns):
+                k = count[conn.topic]
+                count[conn.topic] += 1
+                n = pair_of[conn.topic].get(k)
+                if n is None:
+                    continue
+                ts = stamp_ns(msg, t)
+                where = f"{self.path}: topic {conn.topic} at {ts} ns"
+                pending.setdefault(n, {})[conn.topic] = (to_gray8(decode_image(msg, conn.msgtype, where)), ts)
+                if len(pending[n]) < need:
+                    continue
+                got = pending.pop(n)
+                s_img, s_ts = got[s_topic]
+                d_img, d_ts = got[d_topic] if d_topic else (None, 0)
+                ready[rank[n]] = VioFrame(s_ts, s_img, d_img, d_ts, s_ts in self._gap_starts)
+                while next_out in ready:  # emit in stamp order even if the bag's record order differs
+                    yield ready.pop(next_out)
+                    next_out += 1
+        while next_out in ready:
+            yield ready.pop(next_out)
+            next_out += 1

@@ -1,0 +1,212 @@
+"""``dcc-fg simulate flight``: a rendered VIO flight written as a ROS1 or ROS2 bag with its truth.
+
+Output folder ``DIR``:
+
+* ``flight.bag`` (ROS1) or ``flight/`` (ROS2 sqlite3 bag folder) with
+  ``/imu0`` (``sensor_msgs/Imu``, 200 Hz, noisy, IMU frame I),
+  ``/cam0/image_raw`` (static camera, mono8, 20 Hz), ``/cam1/image_raw`` (gimbal camera),
+  and the truth the estimator must not read: ``/ground_truth/pose`` (``geometry_msgs/PoseStamped``,
+  T_WI: body in the world, at the IMU rate) and ``/ground_truth/joints`` (``sensor_msgs/JointState``,
+  radians, at the IMU rate);
+* ``calibration.yaml``: the true chain and cameras (:meth:`GimbalCalibration.to_dict`) plus an
+  ``imu:`` section (:meth:`ImuConfig.to_dict`: ``T_sI`` and the IMU noise the flight was made with);
+* ``ground_truth.tum`` (``t[s] tx ty tz qx qy qz qw``, body in W, at the IMU rate) and
+  ``ground_truth_joints.csv`` (``timestamp_ns,theta_1..theta_L`` at the camera frames).
+
+Times are the simulation's times plus :data:`START_NS` (bags with stamps near zero confuse tools).
+Images are rendered and written one frame at a time, in time order with the IMU.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import io
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+import yaml
+from numpy.typing import NDArray
+
+from dcc_fg.io.bag_writer import BagWriter, quaternion_xyzw
+from dcc_fg.io.outputs import write_joint_angles_csv
+from dcc_fg.model import GimbalCalibration, write_text_atomic
+from dcc_fg.sim.flight_render import WorldRenderer, planes_from_world, render_flight
+from dcc_fg.sim.trajectory import (
+    FlightConfig,
+    FlightTruth,
+    JointMotion,
+    World,
+    default_static_mount,
+    flight_calibration,
+    simulate_flight,
+)
+from dcc_fg.vio.types import ImuConfig
+from factors.camera import CameraModel
+
+START_NS = 1_600_000_000 * 1_000_000_000
+IMU_TOPIC = "/imu0"
+STATIC_TOPIC = "/cam0/image_raw"
+DYNAMIC_TOPIC = "/cam1/image_raw"
+POSE_TOPIC = "/ground_truth/pose"
+JOINT_TOPIC = "/ground_truth/joints"
+
+
+@dataclass(frozen=True)
+class FlightBag:
+    """What :func:`write_flight` wrote."""
+
+    bag: Path
+    calibration: Path
+    ground_truth: Path
+    joints: Path
+    truth: FlightTruth
+    frames: int
+    render_ms_per_pair: float  # CPU time of the process per rendered image pair
+    seconds: float
+
+
+def scale_camera(cam: CameraModel, scale: float) -> CameraModel:
+    """The same lens at ``scale`` times the resolution (pixel centres at integer coordinates)."""
+    if scale == 1.0:
+        return cam
+    fx, fy, cx, cy = cam.intrinsics
+    w, h = cam.resolution
+    return dataclasses.replace(
+        cam,
+        intrinsics=(fx * scale, fy * scale, (cx + 0.5) * scale - 0.5, (cy + 0.5) * scale - 0.5),
+        resolution=(int(round(w * scale)), int(round(h * scale))),
+    )
+
+
+def tum_text(t_ns: NDArray[np.int64], T_WI: NDArray[np.float64]) -> str:
+    """TUM lines ``t[s] tx ty tz qx qy qz qw`` with exact nanosecond times."""
+    buf = io.StringIO()
+    buf.write("# t[s] tx ty tz qx qy qz qw (body/IMU frame in W)\n")
+    for t, T in zip(t_ns, T_WI, strict=True):
+        q = quaternion_xyzw(T[:3, :3])
+        p = T[:3, 3]
+        buf.write(
+            f"{int(t) // 1_000_000_000}.{int(t) % 1_000_000_000:09d} {p[0]:.9f} {p[1]:.9f} {p[2]:.9f} "
+            f"{q[0]:.12f} {q[1]:.12f} {q[2]:.12f} {q[3]:.12f}\n"
+        )
+    return buf.getvalue()
+
+
+def write_flight(
+    out: str | Path,
+    fmt: Literal["ros1", "ros2"] = "ros2",
+    config: FlightConfig | None = None,
+    seed: int = 0,
+    scale: float = 1.0,
+    noise_sigma: float = 2.0,
+    joints: JointMotion | None = None,
+    imu: ImuConfig | None = None,
+    progress: bool = False,
+) -> FlightBag:
+    """Simulate, render and write a flight (see the module docstring).
+
+    Args:
+        out: output folder (created).
+        fmt: ``ros1`` (``flight.bag``) or ``ros2`` (``flight/``).
+        config: flight pattern (default: the paper's two loops, 90 s).
+        seed: seeds the IMU noise, the textures and the image noise.
+        scale: image resolution relative to the 640x480 cameras of the calibration simulator.
+        noise_sigma: image noise, grey levels (1 sigma).
+        joints, imu: gimbal motion and IMU noise (defaults of :mod:`dcc_fg.sim.trajectory`).
+        progress: show a tqdm progress bar.
+    """
+    if fmt not in ("ros1", "ros2"):
+        raise ValueError(f"format must be ros1 or ros2, got {fmt!r}")
+    if not 0.1 <= scale <= 2.0:
+        raise ValueError(f"scale must be within [0.1, 2], got {scale}")
+    t_start = time.perf_counter()
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    config = config or FlightConfig()
+    T_sI = default_static_mount()
+    imu = dataclasses.replace(imu or ImuConfig(), T_sI=T_sI)
+    truth = simulate_flight(config, imu, joints, seed=seed)
+    cal0 = flight_calibration()
+    assert cal0.static_camera is not None and cal0.dynamic_camera is not None
+    cal = dataclasses.replace(
+        cal0,
+        static_camera=scale_camera(cal0.static_camera, scale),
+        dynamic_camera=scale_camera(cal0.dynamic_camera, scale),
+    )
+    renderer = WorldRenderer(planes_from_world(World.around(config)), seed=seed)
+    frames = render_flight(renderer, truth, cal, T_sI, noise_sigma=noise_sigma, seed=seed + 1)
+    bag_path = out / ("flight.bag" if fmt == "ros1" else "flight")
+    frame_set = {int(t): k for k, t in enumerate(truth.frame_t_ns)}
+    names = [f"joint_{k + 1}" for k in range(truth.theta.shape[1])]
+    render_s = 0.0
+    n_frames = 0
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=len(truth.frame_t_ns), unit="frame", desc="rendering")
+    with BagWriter(bag_path, 1 if fmt == "ros1" else 2) as bag:
+        for i, t in enumerate(truth.t_ns):
+            stamp = START_NS + int(t)
+            bag.imu(IMU_TOPIC, stamp, truth.imu.acc[i], truth.imu.gyro[i], "imu0")
+            bag.pose(POSE_TOPIC, stamp, truth.T_WI[i], "world")
+            bag.joints(JOINT_TOPIC, stamp, truth.theta[i], names)
+            if int(t) in frame_set:
+                r0 = time.process_time()
+                t_frame, img_s, img_d = next(frames)
+                render_s += time.process_time() - r0
+                assert t_frame == int(t)
+                bag.image(STATIC_TOPIC, stamp, img_s, "cam0")
+                bag.image(DYNAMIC_TOPIC, stamp, img_d, "cam1")
+                n_frames += 1
+                if bar is not None:
+                    bar.update(1)
+    if bar is not None:
+        bar.close()
+    cal_path = out / "calibration.yaml"
+    d = cal.to_dict()
+    d["imu"] = imu.to_dict()
+    d["flight"] = {
+        "seed": seed,
+        "duration_s": config.duration,
+        "distance_m": truth.distance,
+        "scale": scale,
+        "start_ns": START_NS,
+        "topics": {
+            "imu": IMU_TOPIC,
+            "static": STATIC_TOPIC,
+            "dynamic": DYNAMIC_TOPIC,
+            "pose": POSE_TOPIC,
+            "joints": JOINT_TOPIC,
+        },
+    }
+    write_text_atomic(cal_path, yaml.safe_dump(d, sort_keys=False))
+    gt_path = out / "ground_truth.tum"
+    write_text_atomic(gt_path, tum_text(truth.t_ns + START_NS, truth.T_WI))
+    joints_path = out / "ground_truth_joints.csv"
+    idx = truth.index_of(truth.frame_t_ns)
+    write_joint_angles_csv(joints_path, truth.frame_t_ns + START_NS, truth.theta[idx])
+    return FlightBag(
+        bag=bag_path,
+        calibration=cal_path,
+        ground_truth=gt_path,
+        joints=joints_path,
+        truth=truth,
+        frames=n_frames,
+        render_ms_per_pair=1e3 * render_s / max(n_frames, 1),
+        seconds=time.perf_counter() - t_start,
+    )
+
+
+def load_flight_calibration(path: str | Path) -> tuple[GimbalCalibration, ImuConfig]:
+    """The calibration and IMU configuration of a ``calibration.yaml`` with an ``imu:`` section."""
+    from dcc_fg.model import load_calibration
+    from dcc_fg.vio.types import load_imu_config
+
+    imu = load_imu_config(path)
+    if imu is None:
+        raise ValueError(f"{path}: no 'imu:' section (T_sI and IMU noise are needed for VIO)")
+    return load_calibration(path), imu
