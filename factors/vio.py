@@ -14,9 +14,10 @@ Jacobians (right perturbation of the pose, gtsam's convention ``T_WI Exp([omega,
   chain's analytic joint-angle Jacobian (eq. 15, :func:`factors.chain.transform_points`);
 * ``d pi / d p = [[1/z, 0, -x/z^2], [0, 1/z, -y/z^2]]``.
 
-The static camera uses the same expression with ``T_ds = I`` (or gtsam's C++
-``GenericProjectionFactorCal3_S2`` with identity intrinsics and ``body_P_sensor = T_Is``, which is
-what the smoother uses for speed; both are tested against each other).
+The static camera, and the gimbal camera locked at known angles, use gtsam's C++
+``GenericProjectionFactorCal3_S2`` with identity intrinsics and ``body_P_sensor`` = the inverse
+camera extrinsic (:func:`static_projection_factor`); :func:`gimbal_residuals` with ``kin=None`` is
+the same model in numpy and both are tested against each other.
 """
 
 from __future__ import annotations
@@ -28,7 +29,6 @@ import numpy as np
 from numpy.typing import NDArray
 
 from factors import chain
-from factors.calibration import RobustLoss
 
 FloatArray = NDArray[np.float64]
 MIN_DEPTH = 1e-6
@@ -100,72 +100,39 @@ def gimbal_residuals(
     return GimbalResiduals(r, d_pose, d_point, d_theta, depth)
 
 
-def _whiten(
-    r: FloatArray, blocks: list[FloatArray], sigma: float, robust: RobustLoss | None
-) -> tuple[FloatArray, list[FloatArray]]:
-    r = r / sigma
-    blocks = [b / sigma for b in blocks]
-    if robust is None:
-        return r, blocks
-    if not blocks:
-        return r * robust.scale(r)[:, None], blocks
-    widths = [b.shape[2] for b in blocks]
-    r2, J2 = robust.apply(r, np.concatenate(blocks, axis=2))
-    return r2, np.split(J2, np.cumsum(widths)[:-1], axis=2)
+class ChainCache:
+    """Memo of ``T_ds(theta)`` and its tangent Jacobian for recently seen joint angles.
 
-
-def gimbal_batch_factor(
-    z: FloatArray,
-    sigma: float,
-    pose_key: int,
-    landmark_keys: list[int],
-    theta_key: int | None,
-    kin: FloatArray,
-    n_joints: int,
-    T_sI: FloatArray,
-    theta_const: FloatArray | None = None,
-    robust: RobustLoss | None = None,
-) -> gtsam.CustomFactor:
-    """Eq. 14 for N observations of one gimbal-camera frame, keys ``[pose, theta?, landmark_1..N]``.
-
-    One factor per frame keeps Python callbacks few; the residual is the stacked whitened
-    2N-vector (robust loss per observation, exact Jacobian). ``theta_key=None`` holds the joints
-    at ``theta_const`` (gimbal locked at known angles, the scc mode).
+    Every gimbal observation of a keyframe shares the keyframe's joint angles, so the chain and
+    its derivative are computed once per linearization point instead of once per observation.
     """
-    z = np.asarray(z, float).reshape(-1, 2)
-    if z.shape[0] != len(landmark_keys):
-        raise ValueError("one measurement per landmark key is needed")
-    if theta_key is None and theta_const is None:
-        raise ValueError("either theta_key or theta_const is needed")
-    kin = np.asarray(kin, float)
-    T_sI = np.asarray(T_sI, float)
-    keys = [pose_key] + ([theta_key] if theta_key is not None else []) + list(landmark_keys)
-    n = z.shape[0]
 
-    def error(this: gtsam.CustomFactor, values: gtsam.Values, H: list[FloatArray] | None) -> FloatArray:
-        T = values.atPose3(pose_key).matrix()
-        theta = values.atVector(theta_key) if theta_key is not None else theta_const
-        p_W = np.array([values.atPoint3(k) for k in landmark_keys]).reshape(n, 3)
-        res = gimbal_residuals(T, p_W, theta, kin, n_joints, T_sI, z, H is not None)
-        if H is None:
-            r, _ = _whiten(res.r, [], sigma, robust)
-            return r.ravel()
-        assert res.d_pose is not None and res.d_point is not None and res.d_theta is not None
-        blocks = [res.d_pose] + ([res.d_theta] if theta_key is not None else []) + [res.d_point]
-        r, (Jp, *rest) = _whiten(res.r, blocks, sigma, robust)
-        H[0] = Jp.reshape(2 * n, 6)
-        pos = 1
-        if theta_key is not None:
-            H[1] = rest[0].reshape(2 * n, n_joints)
-            pos = 2
-        Jl = rest[-1]
-        for i in range(n):
-            block = np.zeros((2 * n, 3))
-            block[2 * i : 2 * i + 2] = Jl[i]
-            H[pos + i] = block
-        return r.ravel()
+    def __init__(self, kin: FloatArray, n_joints: int, maxsize: int = 512) -> None:
+        self.kin = np.asarray(kin, float)
+        self.L = n_joints
+        self.maxsize = maxsize
+        self._memo: dict[bytes, tuple[FloatArray, FloatArray]] = {}
 
-    return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(2 * n), keys, error)
+    def get(self, theta: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """``(T_ds (4, 4), J (6, L))`` with ``T_ds(theta + d) ~= T_ds(theta) Exp(J d)``."""
+        theta = np.asarray(theta, float)
+        key = theta.tobytes()
+        hit = self._memo.get(key)
+        if hit is None:
+            if len(self._memo) >= self.maxsize:
+                self._memo.clear()
+            T = chain.T_ds(self.kin, theta, self.L)
+            _, J = chain.d_T_ds_tangent(self.kin, theta, self.L)
+            hit = (T, J)
+            self._memo[key] = hit
+        return hit
+
+
+def _noise(sigma: float, huber_k: float | None) -> gtsam.noiseModel.Base:
+    noise: gtsam.noiseModel.Base = gtsam.noiseModel.Isotropic.Sigma(2, sigma)
+    if huber_k is not None:
+        noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(huber_k), noise)
+    return noise
 
 
 def gimbal_reprojection_factor(
@@ -174,57 +141,88 @@ def gimbal_reprojection_factor(
     pose_key: int,
     landmark_key: int,
     theta_key: int,
-    kin: FloatArray,
-    n_joints: int,
+    cache: ChainCache,
     T_sI: FloatArray,
-    robust: RobustLoss | None = None,
+    huber_k: float | None = None,
 ) -> gtsam.CustomFactor:
-    """Eq. 14 for one observation, keys ``[pose (Pose3 T_WI), theta (Vector L), landmark (Point3 p_W)]``."""
-    f = gimbal_batch_factor(
-        np.asarray(z).reshape(1, 2), sigma, pose_key, [landmark_key], theta_key, kin, n_joints, T_sI, robust=robust
-    )
-    return f
+    """Eq. 14 for one gimbal-camera observation ``z`` (normalized), keys ``[pose (Pose3 T_WI),
+    landmark (Point3 p_W), theta (Vector L)]``, whitened by ``sigma`` with an optional Huber loss.
 
-
-def static_batch_factor(
-    z: FloatArray,
-    sigma: float,
-    pose_key: int,
-    landmark_keys: list[int],
-    T_sI: FloatArray,
-    robust: RobustLoss | None = None,
-) -> gtsam.CustomFactor:
-    """Static-camera reprojection of N observations of one frame, keys ``[pose, landmark_1..N]`` (numpy)."""
-    z = np.asarray(z, float).reshape(-1, 2)
-    T_sI = np.asarray(T_sI, float)
-    n = z.shape[0]
+    The joint-angle Jacobian (eq. 15) is ``d pi/d p_d R_ds (-[p_s]_x J_omega + J_v)`` with
+    ``J = [J_omega; J_v]`` the tangent Jacobian of ``T_ds`` from :func:`factors.chain.d_T_ds_tangent`.
+    """
+    z = np.asarray(z, float).reshape(2)
+    R_sI = np.asarray(T_sI, float)[:3, :3].copy()
+    t_sI = np.asarray(T_sI, float)[:3, 3].copy()
 
     def error(this: gtsam.CustomFactor, values: gtsam.Values, H: list[FloatArray] | None) -> FloatArray:
         T = values.atPose3(pose_key).matrix()
-        p_W = np.array([values.atPoint3(k) for k in landmark_keys]).reshape(n, 3)
-        res = gimbal_residuals(T, p_W, None, None, 0, T_sI, z, H is not None)
-        if H is None:
-            r, _ = _whiten(res.r, [], sigma, robust)
-            return r.ravel()
-        assert res.d_pose is not None and res.d_point is not None
-        r, (Jp, Jl) = _whiten(res.r, [res.d_pose, res.d_point], sigma, robust)
-        H[0] = Jp.reshape(2 * n, 6)
-        for i in range(n):
-            block = np.zeros((2 * n, 3))
-            block[2 * i : 2 * i + 2] = Jl[i]
-            H[1 + i] = block
-        return r.ravel()
+        p_W = values.atPoint3(landmark_key)
+        T_ds, J_th = cache.get(values.atVector(theta_key))
+        R = T[:3, :3]
+        p_I = R.T @ (p_W - T[:3, 3])
+        p_s = R_sI @ p_I + t_sI
+        R_ds = T_ds[:3, :3]
+        p_d = R_ds @ p_s + T_ds[:3, 3]
+        zd = p_d[2] if p_d[2] > MIN_DEPTH else MIN_DEPTH
+        x, y = p_d[0] / zd, p_d[1] / zd
+        if H is not None:
+            Jpi = np.array([[1.0 / zd, 0.0, -x / zd], [0.0, 1.0 / zd, -y / zd]])
+            A = Jpi @ R_ds
+            J_I = A @ R_sI
+            H[0] = np.hstack([J_I @ chain.skew(p_I), -J_I])
+            H[1] = J_I @ R.T
+            H[2] = A @ (J_th[3:] - chain.skew(p_s) @ J_th[:3])
+        return np.array([x - z[0], y - z[1]])
 
-    return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(2 * n), [pose_key] + list(landmark_keys), error)
+    return gtsam.CustomFactor(_noise(sigma, huber_k), [pose_key, landmark_key, theta_key], error)
+
+
+def gimbal_camera_pose_factor(
+    pose_key: int,
+    theta_key: int,
+    camera_key: int,
+    cache: ChainCache,
+    T_sI: FloatArray,
+    sigma_rotation: float = 1e-5,
+    sigma_translation: float = 1e-5,
+) -> gtsam.CustomFactor:
+    """Ties an auxiliary gimbal-camera pose ``T_Wd`` to the body pose and joint angles (eq. 13).
+
+    ``e = Log((T_WI T_dI(theta)^-1)^-1 T_Wd)`` (rad, m) with a tight noise: gimbal observations can
+    then be gtsam's C++ projection factors on ``T_Wd``, and eq. 14 is their composition with this
+    constraint (one Python callback per keyframe instead of one per observation). Keys
+    ``[pose (Pose3 T_WI), theta (Vector L), camera (Pose3 T_Wd)]``. Jacobians, with ``D = C^-1 T_Wd``,
+    ``C = T_WI T_Id``: ``d e/d T_Wd = J_r^-1(e)``, ``d e/d T_WI = -J_r^-1(e) Ad(D^-1) Ad(T_dI)``,
+    ``d e/d theta = J_r^-1(e) Ad(D^-1) Ad(T_ds) J_theta`` (``J_theta`` the tangent Jacobian of T_ds).
+    """
+    T_sI = np.asarray(T_sI, float)
+    noise = gtsam.noiseModel.Diagonal.Sigmas(np.r_[np.full(3, sigma_rotation), np.full(3, sigma_translation)])
+
+    def error(this: gtsam.CustomFactor, values: gtsam.Values, H: list[FloatArray] | None) -> FloatArray:
+        T_WI = values.atPose3(pose_key)
+        T_Wd = values.atPose3(camera_key)
+        T_ds, J_th = cache.get(values.atVector(theta_key))
+        T_dI = gtsam.Pose3(T_ds @ T_sI)
+        C = T_WI.compose(T_dI.inverse())
+        D = C.between(T_Wd)
+        e = gtsam.Pose3.Logmap(D)
+        if H is not None:
+            Jl = gtsam.Pose3.LogmapDerivative(e)
+            Ad = Jl @ D.inverse().AdjointMap()
+            H[0] = -Ad @ T_dI.AdjointMap()
+            H[1] = Ad @ gtsam.Pose3(T_ds).AdjointMap() @ J_th
+            H[2] = Jl
+        return e
+
+    return gtsam.CustomFactor(noise, [pose_key, theta_key, camera_key], error)
 
 
 def static_projection_factor(
     z: FloatArray, sigma: float, pose_key: int, landmark_key: int, T_sI: FloatArray, huber_k: float | None = None
 ) -> gtsam.GenericProjectionFactorCal3_S2:
     """gtsam's C++ projection factor on normalized coordinates (identity intrinsics, ``body_P_sensor = T_Is``)."""
-    noise: gtsam.noiseModel.Base = gtsam.noiseModel.Isotropic.Sigma(2, sigma)
-    if huber_k is not None:
-        noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(huber_k), noise)
+    noise = _noise(sigma, huber_k)
     T_Is = gtsam.Pose3(chain.inv_se3(np.asarray(T_sI, float)))
     K = gtsam.Cal3_S2(1.0, 1.0, 0.0, 0.0, 0.0)
     return gtsam.GenericProjectionFactorCal3_S2(

@@ -4,41 +4,41 @@ from __future__ import annotations
 
 import gtsam
 import numpy as np
-import pytest
 
 from dcc_fg.sim.trajectory import default_static_mount, flight_calibration
-from factors.calibration import RobustLoss
 from factors.vio import (
-    gimbal_batch_factor,
+    ChainCache,
+    gimbal_camera_pose_factor,
     gimbal_reprojection_factor,
-    static_batch_factor,
+    gimbal_residuals,
     static_projection_factor,
 )
 
 X, TH = gtsam.symbol("x", 0), gtsam.symbol("t", 0)
+DIMS = {"x": 6, "t": 2, "l": 3}
 
 
 def _lm(i: int) -> int:
     return gtsam.symbol("l", i)
 
 
-def _scene(seed: int, n: int) -> tuple[gtsam.Values, np.ndarray, np.ndarray, np.ndarray, object]:
-    """Random body pose, joint angles and landmarks 3-15 m in front of the gimbal camera."""
+def _scene(seed: int, n: int, static: bool = False) -> tuple[gtsam.Values, np.ndarray, np.ndarray, np.ndarray, object]:
+    """Random body pose, joint angles and landmarks 3-15 m in front of the gimbal (or static) camera."""
     rng = np.random.default_rng(seed)
     cal = flight_calibration()
     T_sI = default_static_mount()
     theta = np.array([np.deg2rad(90.0), 0.0]) + rng.normal(size=2) * 0.3
     T_WI = gtsam.Pose3(gtsam.Rot3.Expmap(rng.normal(size=3)), rng.normal(size=3) * 5.0)
-    T_dW = cal.T_ds(theta) @ T_sI @ T_WI.inverse().matrix()
-    p_d = np.column_stack([rng.uniform(-0.5, 0.5, (n, 2)), np.ones(n)]) * rng.uniform(3.0, 15.0, (n, 1))
-    T_Wd = np.linalg.inv(T_dW)
-    p_W = p_d @ T_Wd[:3, :3].T + T_Wd[:3, 3]
+    T_cW = (np.eye(4) if static else cal.T_ds(theta)) @ T_sI @ T_WI.inverse().matrix()
+    p_c = np.column_stack([rng.uniform(-0.5, 0.5, (n, 2)), np.ones(n)]) * rng.uniform(3.0, 15.0, (n, 1))
+    T_Wc = np.linalg.inv(T_cW)
+    p_W = p_c @ T_Wc[:3, :3].T + T_Wc[:3, 3]
     values = gtsam.Values()
     values.insert(X, T_WI)
     values.insert(TH, theta)
     for i in range(n):
         values.insert(_lm(i), p_W[i])
-    z = p_d[:, :2] / p_d[:, 2:3] + rng.normal(size=(n, 2)) * 2e-3
+    z = p_c[:, :2] / p_c[:, 2:3] + rng.normal(size=(n, 2)) * 2e-3
     return values, z, theta, T_sI, cal
 
 
@@ -54,67 +54,120 @@ def _retract(values: gtsam.Values, key: int, delta: np.ndarray) -> gtsam.Values:
     return out
 
 
-def _check_jacobians(factor: gtsam.NonlinearFactor, values: gtsam.Values, h: float = 1e-6) -> None:
+def _numeric(fun, values: gtsam.Values, key: int, h: float = 1e-6) -> np.ndarray:
+    dim = DIMS[chr(gtsam.Symbol(key).chr())]
+    cols = []
+    for d in range(dim):
+        e = np.zeros(dim)
+        e[d] = h
+        cols.append((fun(_retract(values, key, e)) - fun(_retract(values, key, -e))) / (2 * h))
+    return np.stack(cols, axis=-1)
+
+
+def _rel(J: np.ndarray, J_num: np.ndarray) -> float:
+    return float(np.linalg.norm(J - J_num) / max(np.linalg.norm(J_num), 1e-12))
+
+
+def _check_factor(factor: gtsam.NonlinearFactor, values: gtsam.Values) -> None:
     A, _ = factor.linearize(values).jacobian()
     col = 0
     for key in factor.keys():
-        dim = {"x": 6, "t": 2, "l": 3}[chr(gtsam.Symbol(key).chr())]
-        J_num = np.zeros((A.shape[0], dim))
-        for d in range(dim):
-            e = np.zeros(dim)
-            e[d] = h
-            ep = factor.whitenedError(_retract(values, key, e))
-            em = factor.whitenedError(_retract(values, key, -e))
-            J_num[:, d] = (ep - em) / (2 * h)
-        J = A[:, col : col + dim]
-        rel = np.linalg.norm(J - J_num) / max(np.linalg.norm(J_num), 1e-12)
+        J_num = _numeric(factor.whitenedError, values, key)
+        dim = J_num.shape[1]
+        rel = _rel(A[:, col : col + dim], J_num)
         assert rel < 1e-6, f"key {gtsam.Symbol(key).string()}: relative error {rel:.2e}"
         col += dim
 
 
-@pytest.mark.parametrize("robust", [None, RobustLoss("huber", 1.5)])
-def test_gimbal_factor_jacobians(robust: RobustLoss | None) -> None:
+def test_gimbal_factor_jacobians() -> None:
     values, z, _, T_sI, cal = _scene(0, 6)
-    sigma = 1e-3
-    f = gimbal_batch_factor(z, sigma, X, [_lm(i) for i in range(6)], TH, cal.kin, 2, T_sI, robust=robust)
-    _check_jacobians(f, values)
-    single = gimbal_reprojection_factor(z[2], sigma, X, _lm(2), TH, cal.kin, 2, T_sI)
-    _check_jacobians(single, values)
+    cache = ChainCache(cal.kin, 2)
+    for i in range(6):
+        f = gimbal_reprojection_factor(z[i], 1e-3, X, _lm(i), TH, cache, T_sI)
+        assert [gtsam.Symbol(k).string() for k in f.keys()] == ["x0", f"l{i}", "t0"]
+        _check_factor(f, values)
 
 
-def test_gimbal_factor_zero_at_truth_and_locked_mode() -> None:
+def test_gimbal_residuals_vectorised_jacobians() -> None:
+    values, z, _, T_sI, cal = _scene(3, 5)
+    keys = [_lm(i) for i in range(5)]
+
+    def res(v: gtsam.Values, jac: bool = False):
+        p_W = np.array([v.atPoint3(k) for k in keys])
+        return gimbal_residuals(v.atPose3(X).matrix(), p_W, v.atVector(TH), cal.kin, 2, T_sI, z, jac)
+
+    J = res(values, True)
+    assert _rel(J.d_pose, _numeric(lambda v: res(v).r, values, X)) < 1e-6
+    assert _rel(J.d_theta, _numeric(lambda v: res(v).r, values, TH)) < 1e-6
+    for i, k in enumerate(keys):
+        assert _rel(J.d_point[i], _numeric(lambda v: res(v).r, values, k)[i]) < 1e-6
+    # the single-observation factor is the same model
+    cache = ChainCache(cal.kin, 2)
+    for i, k in enumerate(keys):
+        f = gimbal_reprojection_factor(z[i], 1.0, X, k, TH, cache, T_sI)
+        np.testing.assert_allclose(f.unwhitenedError(values), J.r[i], atol=1e-14)
+
+
+def test_gimbal_factor_zero_at_truth_and_huber() -> None:
     values, _, theta, T_sI, cal = _scene(1, 5)
     T_dW = cal.T_ds(theta) @ T_sI @ values.atPose3(X).inverse().matrix()
     p = np.array([values.atPoint3(_lm(i)) for i in range(5)]) @ T_dW[:3, :3].T + T_dW[:3, 3]
     z_exact = p[:, :2] / p[:, 2:3]
-    keys = [_lm(i) for i in range(5)]
-    f = gimbal_batch_factor(z_exact, 1e-3, X, keys, TH, cal.kin, 2, T_sI)
+    cache = ChainCache(cal.kin, 2)
+    f = gimbal_reprojection_factor(z_exact[0], 1e-3, X, _lm(0), TH, cache, T_sI)
     assert f.error(values) < 1e-18
-    locked = gimbal_batch_factor(z_exact, 1e-3, X, keys, None, cal.kin, 2, T_sI, theta_const=theta + 0.01)
-    assert locked.error(values) > 1.0  # 0.01 rad off is many sigmas
-    assert len(locked.keys()) == 6
-    _check_jacobians(locked, values)
+    far = gimbal_reprojection_factor(z_exact[0] + 0.05, 1e-3, X, _lm(0), TH, cache, T_sI, huber_k=2.0)
+    plain = gimbal_reprojection_factor(z_exact[0] + 0.05, 1e-3, X, _lm(0), TH, cache, T_sI)
+    assert far.error(values) < 0.1 * plain.error(values)  # Huber grows linearly for a 70-sigma outlier
 
 
-def test_static_factor_matches_gtsam_projection_factor() -> None:
-    values, _, _, T_sI, _ = _scene(2, 4)
-    T_sW = T_sI @ values.atPose3(X).inverse().matrix()
-    values_front = gtsam.Values()
-    values_front.insert(X, values.atPose3(X))
-    # landmarks in front of the static camera
-    T_Ws = np.linalg.inv(T_sW)
-    q_s = np.column_stack([[0.1, -0.2, 0.3, 0.0], [0.2, 0.1, -0.1, 0.05], np.ones(4)]) * [[4.0], [6.0], [9.0], [12.0]]
-    q_W = q_s @ T_Ws[:3, :3].T + T_Ws[:3, 3]
-    for i in range(4):
-        values_front.insert(_lm(i), q_W[i])
-    z = q_s[:, :2] / q_s[:, 2:3] + 1e-3
+def test_static_factor_matches_numpy_model() -> None:
+    values, z, _, T_sI, _ = _scene(2, 4, static=True)
     sigma = 2e-3
-    batch = static_batch_factor(z, sigma, X, [_lm(i) for i in range(4)], T_sI)
-    _check_jacobians(batch, values_front)
-    A_b, b_b = batch.linearize(values_front).jacobian()
     for i in range(4):
         f = static_projection_factor(z[i], sigma, X, _lm(i), T_sI)
-        A, b = f.linearize(values_front).jacobian()
-        np.testing.assert_allclose(A[:, :6], A_b[2 * i : 2 * i + 2, :6], rtol=1e-9, atol=1e-9)
-        np.testing.assert_allclose(A[:, 6:], A_b[2 * i : 2 * i + 2, 6 + 3 * i : 9 + 3 * i], rtol=1e-9, atol=1e-9)
-        np.testing.assert_allclose(b, b_b[2 * i : 2 * i + 2], rtol=1e-9, atol=1e-12)
+        _check_factor(f, values)
+        r = gimbal_residuals(values.atPose3(X).matrix(), values.atPoint3(_lm(i)), None, None, 0, T_sI, z[i : i + 1])
+        np.testing.assert_allclose(f.unwhitenedError(values), r.r[0], atol=1e-12)
+
+
+def test_camera_pose_constraint_jacobians() -> None:
+    values, _, theta, T_sI, cal = _scene(4, 1)
+    C = gtsam.symbol("c", 0)
+    DIMS["c"] = 6
+    cache = ChainCache(cal.kin, 2)
+    T_Wd = values.atPose3(X).compose(gtsam.Pose3(cal.T_ds(theta) @ T_sI).inverse())
+    values.insert(C, T_Wd)
+    f = gimbal_camera_pose_factor(X, TH, C, cache, T_sI, 1e-3, 1e-3)
+    assert f.error(values) < 1e-18
+    # away from zero error (the Log derivative matters there)
+    values.update(C, T_Wd.retract(np.array([0.05, -0.03, 0.02, 0.1, 0.05, -0.2])))
+    _check_factor_pose_retract(f, values)
+
+
+def _check_factor_pose_retract(factor: gtsam.NonlinearFactor, values: gtsam.Values) -> None:
+    A, _ = factor.linearize(values).jacobian()
+    col = 0
+    for key in factor.keys():
+        sym = chr(gtsam.Symbol(key).chr())
+
+        def fun(v: gtsam.Values) -> np.ndarray:
+            return factor.whitenedError(v)
+
+        if sym == "c":
+            dim = 6
+            cols = []
+            for d in range(dim):
+                e = np.zeros(dim)
+                e[d] = 1e-6
+                vp, vm = gtsam.Values(values), gtsam.Values(values)
+                vp.update(key, values.atPose3(key).retract(e))
+                vm.update(key, values.atPose3(key).retract(-e))
+                cols.append((fun(vp) - fun(vm)) / 2e-6)
+            J_num = np.stack(cols, axis=-1)
+        else:
+            J_num = _numeric(fun, values, key)
+            dim = J_num.shape[1]
+        rel = _rel(A[:, col : col + dim], J_num)
+        assert rel < 1e-6, f"key {gtsam.Symbol(key).string()}: relative error {rel:.2e}"
+        col += dim
