@@ -120,6 +120,13 @@ class VioOptions:
     prior_gyro_bias_sigma: float = 0.01
     smoother: str = "incremental"
     gimbal_factor: str = "camera_pose"
+    landmark_prior_sigma: float = 100.0
+    zupt_threshold: float = 0.5 / 460.0
+    zupt_min_tracks: int = 8
+    zupt_velocity_sigma: float = 0.01
+    zupt_pose_sigma: float = 1e-3
+    recovery_position_sigma: float = 0.01
+    recovery_rotation_sigma: float = 0.01
     camera_pose_sigma: float = 1e-4
     relinearize_threshold: float = 0.01
     extra_iterations: int = 1
@@ -302,13 +309,7 @@ class VioSmoother:
         if options.mode == "scc":
             assert calibration is not None and options.theta_fixed is not None
             self.T_dI_fixed = calibration.T_ds(np.asarray(options.theta_fixed, float)) @ self.T_sI
-        if options.smoother == "incremental":
-            p = gtsam.ISAM2Params()
-            p.setRelinearizeThreshold(options.relinearize_threshold)
-            p.relinearizeSkip = 1
-            self.smoother: Any = gtsam.IncrementalFixedLagSmoother(options.lag, p)
-        else:
-            self.smoother = gtsam.BatchFixedLagSmoother(options.lag)
+        self.smoother = self._new_smoother()
         self.k = -1
         self.kf_times: dict[int, int] = {}
         self.estimates: dict[int, tuple[int, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]] = {}
@@ -321,6 +322,7 @@ class VioSmoother:
         self.landmark_pos: dict[int, FloatArray] = {}
         self.n_landmarks = 0
         self.frame_count = 0
+        self.prev_static: dict[int, FloatArray] = {}
         self.stats: dict[str, Any] = {
             "keyframes": 0,
             "landmarks": 0,
@@ -331,6 +333,15 @@ class VioSmoother:
         }
 
     # ------------------------------------------------------------------ helpers
+    def _new_smoother(self) -> Any:
+        o = self.opt
+        if o.smoother == "incremental":
+            p = gtsam.ISAM2Params()
+            p.setRelinearizeThreshold(o.relinearize_threshold)
+            p.relinearizeSkip = 1
+            return gtsam.IncrementalFixedLagSmoother(o.lag, p)
+        return gtsam.BatchFixedLagSmoother(o.lag)
+
     def _theta_at(self, k: int, values: gtsam.Values | None = None) -> FloatArray:
         if self.opt.mode == "scc":
             return np.asarray(self.opt.theta_fixed, float)
@@ -419,6 +430,7 @@ class VioSmoother:
         self.state = gtsam.NavState(pose, v)
         self.estimates[0] = (t, pose.matrix(), v, self.bias.accelerometer(), self.bias.gyroscope(), self.theta.copy())
         self._observe(0, frame, graph, values, stamps)
+        self.prev_static = dict(zip(frame.static_ids.tolist(), frame.static_xy, strict=True))
         self._update(graph, values, stamps)
 
     def add_frame(self, frame: TrackFrame) -> bool:
@@ -463,9 +475,34 @@ class VioSmoother:
             )
             self.estimates[k] = self.estimates[k][:5] + (theta0,)
             self._add_camera_pose(k, pred.pose(), theta0, graph, values, stamps)
+        self._zero_velocity(k_prev, k, frame, graph)
         self._observe(k, frame, graph, values, stamps)
         self._update(graph, values, stamps)
         return True
+
+    def _zero_velocity(self, k_prev: int, k: int, frame: TrackFrame, graph: gtsam.NonlinearFactorGraph) -> None:
+        """Standstill detection: if the static-camera tracks did not move between the keyframes
+        (median displacement below ``zupt_threshold``), add zero-velocity and no-motion factors.
+        Without parallax nothing can be triangulated, so this is what keeps a resting body fixed."""
+        o = self.opt
+        prev = self.prev_static
+        cur = dict(zip(frame.static_ids.tolist(), frame.static_xy, strict=True))
+        self.prev_static = cur
+        common = [tid for tid in cur if tid in prev]
+        if len(common) < o.zupt_min_tracks:
+            return
+        disp = float(np.median([np.linalg.norm(cur[tid] - prev[tid]) for tid in common]))
+        if disp >= o.zupt_threshold:
+            return
+        self.stats["zero_velocity"] = self.stats.get("zero_velocity", 0) + 1
+        graph.add(
+            gtsam.PriorFactorVector(V(k), np.zeros(3), gtsam.noiseModel.Isotropic.Sigma(3, o.zupt_velocity_sigma))
+        )
+        graph.add(
+            gtsam.BetweenFactorPose3(
+                X(k_prev), X(k), gtsam.Pose3(), gtsam.noiseModel.Isotropic.Sigma(6, o.zupt_pose_sigma)
+            )
+        )
 
     def _add_camera_pose(
         self,
@@ -591,6 +628,8 @@ class VioSmoother:
             self.landmark_pos[lm] = p
             self.landmark_last[lm] = t
             values.insert(LM(lm), p)
+            # a very weak prior keeps a landmark determined if all its projections fail cheirality
+            graph.add(gtsam.PriorFactorPoint3(LM(lm), p, gtsam.noiseModel.Isotropic.Sigma(3, o.landmark_prior_sigma)))
             stamps[LM(lm)] = t
             for kk, cam, z in tr.obs:
                 graph.add(self._factor(kk, cam, lm, z))
@@ -623,10 +662,14 @@ class VioSmoother:
             self.smoother.update(graph, values, ts)
             for _ in range(self.opt.extra_iterations):
                 self.smoother.update()
-        except RuntimeError as err:  # indeterminant system etc.: report, keep the IMU prediction
+        except RuntimeError as err:  # indeterminant system etc.: log, restart from the IMU prediction
             self.stats["failed_updates"] += 1
-            log.warning("smoother update failed at keyframe %d: %s", self.k, err)
-            raise
+            log.warning(
+                "smoother update failed at keyframe %d (%s); restarting the window from the IMU prediction",
+                self.k,
+                str(err).strip().splitlines()[0],
+            )
+            self._restart(values)
         est = self.smoother.calculateEstimate()
         for kk, t in self.kf_times.items():
             if est.exists(X(kk)):
@@ -654,6 +697,54 @@ class VioSmoother:
                 del self.active[tid]
                 self.landmark_pos.pop(lm, None)
         self.stats["keyframes"] = k + 1
+
+    def _restart(self, values: gtsam.Values) -> None:
+        """Recovery after a failed update: a fresh window anchored at the newest keyframe's
+        predicted state (moderate priors), with every landmark and buffered track dropped."""
+        o, k = self.opt, self.k
+        t = self.kf_times[k]
+        self.smoother = self._new_smoother()
+        self.active.clear()
+        self.landmark_pos.clear()
+        self.tracks.clear()
+        graph = gtsam.NonlinearFactorGraph()
+        new = gtsam.Values()
+        pose, vel, bias = values.atPose3(X(k)), values.atVector(V(k)), values.atConstantBias(B(k))
+        graph.add(
+            gtsam.PriorFactorPose3(
+                X(k),
+                pose,
+                gtsam.noiseModel.Diagonal.Sigmas(
+                    np.r_[np.full(3, o.recovery_rotation_sigma), np.full(3, o.recovery_position_sigma)]
+                ),
+            )
+        )
+        graph.add(gtsam.PriorFactorVector(V(k), vel, gtsam.noiseModel.Isotropic.Sigma(3, 10 * o.prior_velocity_sigma)))
+        graph.add(
+            gtsam.PriorFactorConstantBias(
+                B(k),
+                bias,
+                gtsam.noiseModel.Diagonal.Sigmas(
+                    np.r_[np.full(3, o.prior_acc_bias_sigma), np.full(3, o.prior_gyro_bias_sigma)]
+                ),
+            )
+        )
+        new.insert(X(k), pose)
+        new.insert(V(k), vel)
+        new.insert(B(k), bias)
+        stamps = {X(k): t, V(k): t, B(k): t}
+        if o.mode == "dcc":
+            theta = values.atVector(TH(k))
+            graph.add(
+                gtsam.PriorFactorVector(TH(k), theta, gtsam.noiseModel.Isotropic.Sigma(self.L, o.theta_prior_sigma))
+            )
+            new.insert(TH(k), theta)
+            stamps[TH(k)] = t
+            self._add_camera_pose(k, pose, theta, graph, new, stamps)
+        ts = gtsam.FixedLagSmootherKeyTimestampMap()
+        for key, tt in stamps.items():
+            ts.insert((key, tt / NS))
+        self.smoother.update(graph, new, ts)
 
     def result(self) -> VioResult:
         ks = sorted(self.estimates)
