@@ -39,6 +39,7 @@ import logging
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import gtsam
@@ -799,3 +800,26 @@ def run_vio(
         }
     )
     return res
+
+
+def write_vio_outputs(out_dir: str | Path, result: VioResult, extra: dict[str, Any] | None = None) -> None:
+    """``OUT/trajectory.tum`` (body/IMU frame), ``OUT/joint_angles.csv`` (dcc/scc) and ``OUT/summary.json``."""
+    from dcc_fg.io.outputs import write_joint_angles_csv, write_json
+    from dcc_fg.io.tum import write_tum
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    write_tum(out / "trajectory.tum", result.timestamps_ns, result.T_WI)
+    if result.mode != "mono" and result.theta.shape[1] > 0:
+        write_joint_angles_csv(out / "joint_angles.csv", result.timestamps_ns, result.theta)
+    summary = {
+        "mode": result.mode,
+        "keyframes": int(result.timestamps_ns.size),
+        "start_ns": int(result.timestamps_ns[0]) if result.timestamps_ns.size else None,
+        "end_ns": int(result.timestamps_ns[-1]) if result.timestamps_ns.size else None,
+        "final_acc_bias": result.acc_bias[-1] if result.timestamps_ns.size else None,
+        "final_gyro_bias": result.gyro_bias[-1] if result.timestamps_ns.size else None,
+        **result.stats,
+        **(extra or {}),
+    }
+    write_json(out / "summary.json", summary)
