@@ -13,7 +13,7 @@ import pytest
 
 from dcc_fg.sim.vio_study import StudyConfig, run_mode, slew_recovery_errors
 
-CFG = StudyConfig(duration=24.0, density=0.5, pixel_sigma=0.5, seed=0)
+CFG = StudyConfig(duration=30.0, density=0.5, pixel_sigma=0.5, seed=0)
 
 
 @pytest.fixture(scope="module")
