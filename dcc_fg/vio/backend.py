@@ -130,7 +130,7 @@ class VioOptions:
     recovery_rotation_sigma: float = 0.01
     camera_pose_sigma: float = 1e-4
     relinearize_threshold: float = 0.01
-    extra_iterations: int = 1
+    extra_iterations: int = 0
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -597,6 +597,7 @@ class VioSmoother:
     ) -> None:
         o = self.opt
         added = 0
+        memo: dict[tuple[int, int], FloatArray] = {}  # camera poses of the window's keyframes
         for tid in list(self.tracks):
             tr = self.tracks[tid]
             tr.obs = [ob for ob in tr.obs if self._in_window(self.kf_times[ob[0]], t)]
@@ -615,7 +616,12 @@ class VioSmoother:
             use = [ob for ob in tr.obs if ob[1] == 0]
             if len({ob[0] for ob in use}) < 2:
                 use = tr.obs
-            T_Wc = np.array([self._T_Wc(kk, cam) for kk, cam, _ in use])
+            T_Wc = np.array(
+                [
+                    memo[(kk, cam)] if (kk, cam) in memo else memo.setdefault((kk, cam), self._T_Wc(kk, cam))
+                    for kk, cam, _ in use
+                ]
+            )
             xy = np.array([z for _, _, z in use])
             p = triangulate(T_Wc, xy)
             if not self._good_landmark(p, T_Wc, xy):
