@@ -147,6 +147,10 @@ def test_bad_imu_and_options_raise(truth) -> None:
         run_vio(frames, imu, cfg, flight_calibration(), VioOptions(mode="scc"))
     with pytest.raises(ValueError, match="needs the gimbal calibration"):
         run_vio(frames, imu, cfg, None, VioOptions(mode="dcc"))
+    with pytest.raises(ValueError, match="theta_initial"):
+        run_vio(frames, imu, cfg, flight_calibration(), VioOptions(mode="dcc"))
+    res = run_vio(frames, imu, cfg, flight_calibration(), VioOptions(mode="dcc", theta_initial=(1.5, 0.0)))
+    np.testing.assert_allclose(res.theta[0], [1.5, 0.0], atol=1e-6)  # no gimbal tracks: the prior holds
     with pytest.raises(ValueError, match="not after"):
         run_vio(frames[::-1], imu, cfg, None, VioOptions(mode="mono"))
 

@@ -30,9 +30,11 @@ from dcc_fg.vio.types import ImuConfig
 
 @dataclass(frozen=True)
 class StudyConfig:
-    """Flight duration (s), landmark density (points/m^2), pixel noise (px), seeds, initial joint error (rad)."""
+    """Flight duration (s), pattern (``short``: one 16 m x 8 m loop; ``paper``: two 30 m x 15 m loops,
+    ~180 m), landmark density (points/m^2), pixel noise (px), seed, initial joint error (rad)."""
 
     duration: float = 30.0
+    pattern: str = "short"
     density: float = 0.5
     pixel_sigma: float = 0.5
     seed: int = 0
@@ -42,7 +44,10 @@ class StudyConfig:
 def _study_inputs(cfg: StudyConfig) -> tuple[FlightTruth, np.ndarray, ImuConfig]:
     T_sI = default_static_mount()
     imu_cfg = ImuConfig(T_sI=T_sI)
-    truth = simulate_flight(FlightConfig.short(cfg.duration), imu_cfg, seed=cfg.seed)
+    if cfg.pattern not in ("short", "paper"):
+        raise ValueError(f"pattern '{cfg.pattern}' is not one of short, paper")
+    flight = FlightConfig.short(cfg.duration) if cfg.pattern == "short" else FlightConfig(duration=cfg.duration)
+    truth = simulate_flight(flight, imu_cfg, seed=cfg.seed)
     pts = World.around(truth.config).sample_points(cfg.density, np.random.default_rng(cfg.seed + 100))
     return truth, pts, imu_cfg
 

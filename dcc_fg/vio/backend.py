@@ -96,7 +96,8 @@ class VioOptions:
 
     ``sigma`` is the standard deviation of a normalized image coordinate (pixel sigma / focal
     length); ``robust_k`` the Huber threshold in sigmas; ``theta_random_walk`` the joint-angle
-    random walk in rad/sqrt(s); ``theta_fixed`` the locked joint angles of ``scc`` mode.
+    random walk in rad/sqrt(s); ``theta_fixed`` the locked joint angles of ``scc`` mode;
+    ``theta_initial`` the joint-angle guess of a ``dcc`` run initialized from standstill.
     """
 
     mode: str = "dcc"
@@ -107,6 +108,7 @@ class VioOptions:
     theta_random_walk: float = 1.0
     theta_prior_sigma: float = 0.1
     theta_fixed: tuple[float, ...] | None = None
+    theta_initial: tuple[float, ...] | None = None
     min_track_keyframes: int = 3
     min_parallax_deg: float = 1.0
     max_depth: float = 60.0
@@ -365,8 +367,8 @@ class VioSmoother:
 
     def _in_window(self, t_ns: int, now_ns: int) -> bool:
         """True if a keyframe at t_ns survives the next update (not marginalized)."""
-        dt_kf = self.opt.keyframe_every * 0.05
-        return t_ns >= now_ns - int((self.opt.lag - dt_kf) * NS)
+        dt_kf = now_ns - self.kf_times[self.k - 1] if self.k >= 1 else 0
+        return t_ns >= now_ns - int(self.opt.lag * NS) + dt_kf
 
     # ------------------------------------------------------------------ main loop
     def initialize(self, frame: TrackFrame, initial: InitialState | None) -> None:
@@ -375,7 +377,16 @@ class VioSmoother:
                 self.imu, frame.timestamp_ns, self.opt.standstill_window, self.cfg.gravity, self.L
             )
             if self.opt.mode == "dcc":
-                raise ValueError("dcc mode needs an initial joint-angle guess: pass initial with theta")
+                if self.opt.theta_initial is None or len(self.opt.theta_initial) != self.L:
+                    raise ValueError(f"dcc mode from standstill needs theta_initial ({self.L} joint angles, rad)")
+                initial = InitialState(
+                    initial.t_ns,
+                    initial.T_WI,
+                    initial.v_W,
+                    initial.acc_bias,
+                    initial.gyro_bias,
+                    np.asarray(self.opt.theta_initial, float),
+                )
         theta0 = np.asarray(initial.theta, float).reshape(-1)
         if self.opt.mode == "dcc" and theta0.shape[0] != self.L:
             raise ValueError(f"initial theta must have {self.L} joint angles")
