@@ -230,6 +230,28 @@ def static_projection_factor(
     )
 
 
+class ProjectionFactory:
+    """Builds :func:`static_projection_factor`-equivalent factors for one camera mount with the noise
+    model, intrinsics and ``body_P_sensor`` created once (the smoother makes thousands per second)."""
+
+    def __init__(self, sigma: float, T_cI: FloatArray, huber_k: float | None = None) -> None:
+        self.noise = _noise(sigma, huber_k)
+        self.K = gtsam.Cal3_S2(1.0, 1.0, 0.0, 0.0, 0.0)
+        self.body_P_sensor = gtsam.Pose3(chain.inv_se3(np.asarray(T_cI, float)))
+
+    def __call__(self, z: FloatArray, pose_key: int, landmark_key: int) -> gtsam.GenericProjectionFactorCal3_S2:
+        return gtsam.GenericProjectionFactorCal3_S2(
+            np.asarray(z, float).reshape(2),
+            self.noise,
+            pose_key,
+            landmark_key,
+            self.K,
+            False,
+            False,
+            self.body_P_sensor,
+        )
+
+
 def joint_random_walk_factor(key_i: int, key_j: int, n_joints: int, sigma: float) -> gtsam.BetweenFactorVector:
     """``theta_j - theta_i ~ N(0, sigma^2 I)`` (rad): the joint-angle random walk between keyframes."""
     return gtsam.BetweenFactorVector(

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import gtsam
 import numpy as np
+import pytest
 
 from dcc_fg.sim.trajectory import default_static_mount, flight_calibration
 from factors.vio import (
@@ -171,3 +172,14 @@ def _check_factor_pose_retract(factor: gtsam.NonlinearFactor, values: gtsam.Valu
         rel = _rel(A[:, col : col + dim], J_num)
         assert rel < 1e-6, f"key {gtsam.Symbol(key).string()}: relative error {rel:.2e}"
         col += dim
+
+
+def test_projection_factory_matches_static_factor() -> None:
+    from factors.vio import ProjectionFactory
+
+    values, z, _, T_sI, _ = _scene(5, 3, static=True)
+    make = ProjectionFactory(2e-3, T_sI, huber_k=2.0)
+    for i in range(3):
+        a = make(z[i], X, _lm(i))
+        b = static_projection_factor(z[i], 2e-3, X, _lm(i), T_sI, huber_k=2.0)
+        assert a.error(values) == pytest.approx(b.error(values), rel=1e-12)

@@ -52,11 +52,11 @@ from factors import chain
 from factors.calibration import RobustLoss
 from factors.vio import (
     ChainCache,
+    ProjectionFactory,
     gimbal_camera_pose_factor,
     gimbal_reprojection_factor,
     gimbal_residuals,
     joint_random_walk_factor,
-    static_projection_factor,
 )
 
 FloatArray = NDArray[np.float64]
@@ -308,10 +308,13 @@ class VioSmoother:
         self.params = preintegration_params(imu_config)
         self.robust = RobustLoss("huber", options.robust_k)
         self.chain_cache = ChainCache(calibration.kin, self.L) if calibration is not None else None
+        self.project_static = ProjectionFactory(options.sigma, self.T_sI, options.robust_k)
+        self.project_camera = ProjectionFactory(options.sigma, np.eye(4), options.robust_k)
         self.T_dI_fixed = np.eye(4)
         if options.mode == "scc":
             assert calibration is not None and options.theta_fixed is not None
             self.T_dI_fixed = calibration.T_ds(np.asarray(options.theta_fixed, float)) @ self.T_sI
+        self.project_locked = ProjectionFactory(options.sigma, self.T_dI_fixed, options.robust_k)
         self.smoother = self._new_smoother()
         self.k = -1
         self.kf_times: dict[int, int] = {}
@@ -594,14 +597,14 @@ class VioSmoother:
         o = self.opt
         if cam == 0:
             self.stats["static_obs"] += 1
-            return static_projection_factor(z, o.sigma, X(k), LM(lm), self.T_sI, o.robust_k)
+            return self.project_static(z, X(k), LM(lm))
         self.stats["dynamic_obs"] += 1
         if o.mode == "dcc" and o.gimbal_factor == "camera_pose":
-            return static_projection_factor(z, o.sigma, CAM(k), LM(lm), np.eye(4), o.robust_k)
+            return self.project_camera(z, CAM(k), LM(lm))
         if o.mode == "dcc":
             assert self.chain_cache is not None
             return gimbal_reprojection_factor(z, o.sigma, X(k), LM(lm), TH(k), self.chain_cache, self.T_sI, o.robust_k)
-        return static_projection_factor(z, o.sigma, X(k), LM(lm), self.T_dI_fixed, o.robust_k)
+        return self.project_locked(z, X(k), LM(lm))
 
     def _triangulate_ready(
         self, k: int, t: int, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, stamps: dict[int, int]
