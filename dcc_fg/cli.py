@@ -95,6 +95,14 @@ def _add_reader_options(p: argparse.ArgumentParser) -> None:
     )
 
 
+def _cmd_evaluate(args: argparse.Namespace) -> int:
+    from dcc_fg.vio.evaluate import evaluate_output, format_evaluation
+
+    result = evaluate_output(Path(args.out), Path(args.ground_truth), align=args.align)
+    print(format_evaluation(result))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="dcc-fg",
@@ -257,6 +265,24 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--scale", type=float, default=1.0, help="image resolution relative to 640x480 (default 1)")
     f.add_argument("--quiet", action="store_true", help="no progress bar")
     f.set_defaults(func=_cmd_simulate_flight)
+    e = sub.add_parser(
+        "evaluate",
+        help="score a VIO run (trajectory.tum, joint_angles.csv) against ground truth",
+        description="APE/RPE with evo (SE(3) alignment; Sim(3) for mono runs), normalized translation RMSE (%% of "
+        "distance) and rotation RMSE (rad/m) as in the paper's Table IV, joint-angle RMSE per joint (Table V). "
+        "Writes OUT/evaluation.json.",
+    )
+    e.add_argument("out", help="output folder of dcc-fg vio (trajectory.tum, summary.json, joint_angles.csv)")
+    e.add_argument(
+        "--ground-truth",
+        required=True,
+        help="TUM file (t tx ty tz qx qy qz qw, body frame) or ROS1/ROS2 bag with /ground_truth/pose "
+        "(geometry_msgs/PoseStamped) and /ground_truth/joints (sensor_msgs/JointState)",
+    )
+    e.add_argument(
+        "--align", default="auto", choices=["auto", "se3", "sim3", "none"], help="default: sim3 for mono, else se3"
+    )
+    e.set_defaults(func=_cmd_evaluate)
     return p
 
 

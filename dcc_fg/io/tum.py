@@ -1,0 +1,65 @@
+"""TUM trajectory files: one pose per line, ``t[s] tx ty tz qx qy qz qw`` (``#`` comments allowed).
+
+A pose ``T_WI`` maps body/IMU points into the world frame (translation in metres, Hamilton
+quaternion x, y, z, w). Timestamps are written with nanosecond resolution.
+"""
+
+from __future__ import annotations
+
+import io
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
+
+from dcc_fg.model import write_text_atomic
+
+NS = 1_000_000_000
+
+
+def write_tum(path: str | Path, t_ns: NDArray[np.int64], T: NDArray[np.float64]) -> None:
+    """Write poses ``T`` (N, 4, 4) at times ``t_ns`` atomically."""
+    T = np.asarray(T, float).reshape(-1, 4, 4)
+    q = Rotation.from_matrix(T[:, :3, :3]).as_quat()  # x, y, z, w
+    buf = io.StringIO()
+    buf.write("# timestamp tx ty tz qx qy qz qw\n")
+    for t, p, qq in zip(np.asarray(t_ns, dtype=np.int64), T[:, :3, 3], q, strict=True):
+        buf.write(f"{int(t) // NS}.{int(t) % NS:09d} " + " ".join(f"{x:.9f}" for x in (*p, *qq)) + "\n")
+    write_text_atomic(Path(path), buf.getvalue())
+
+
+def _ns(text: str) -> int:
+    whole, _, frac = text.partition(".")
+    sign = -1 if whole.startswith("-") else 1
+    return sign * (abs(int(whole)) * NS + int((frac + "000000000")[:9]))
+
+
+def read_tum(path: str | Path) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
+    """Read a TUM file: times (N,) int64 ns and poses (N, 4, 4); ValueError names the bad line."""
+    path = Path(path)
+    times, rows = [], []
+    for k, line in enumerate(path.read_text().splitlines(), start=1):
+        line = line.strip()
+        if not line or line.startswith("#"):
+            continue
+        parts = line.replace(",", " ").split()
+        if len(parts) != 8:
+            raise ValueError(f"{path}:{k}: expected 8 columns 't tx ty tz qx qy qz qw', got {len(parts)}")
+        try:
+            times.append(_ns(parts[0]))
+            rows.append([float(x) for x in parts[1:]])
+        except ValueError:
+            raise ValueError(f"{path}:{k}: not a number in '{line}'") from None
+    if not rows:
+        raise ValueError(f"{path}: no poses")
+    arr = np.array(rows)
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"{path}: non-finite pose values")
+    T = np.tile(np.eye(4), (arr.shape[0], 1, 1))
+    T[:, :3, :3] = Rotation.from_quat(arr[:, 3:7]).as_matrix()
+    T[:, :3, 3] = arr[:, :3]
+    t = np.array(times, dtype=np.int64)
+    if np.any(np.diff(t) <= 0):
+        raise ValueError(f"{path}: timestamps are not strictly increasing")
+    return t, T
