@@ -96,10 +96,15 @@ def _add_reader_options(p: argparse.ArgumentParser) -> None:
 
 
 def _cmd_evaluate(args: argparse.Namespace) -> int:
+    from dcc_fg.plots.vio_output import write_vio_figures
     from dcc_fg.vio.evaluate import evaluate_output, format_evaluation
 
-    result = evaluate_output(Path(args.out), Path(args.ground_truth), align=args.align)
+    out = Path(args.out)
+    result = evaluate_output(out, Path(args.ground_truth), align=args.align)
     print(format_evaluation(result))
+    saved = write_vio_figures(out, Path(args.ground_truth), align=result["alignment"])
+    for path in saved.paths.values():
+        print(f"wrote {path}")
     return 0
 
 

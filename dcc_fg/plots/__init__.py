@@ -21,6 +21,7 @@ from dcc_fg.plots.vio import (
     joint_angles_figure,
     trajectory_topview_figure,
 )
+from dcc_fg.plots.vio_output import VioFigures, vio_output_figures, write_vio_figures
 
 __all__ = [
     "calibration_figures",
@@ -36,6 +37,9 @@ __all__ = [
     "snapshot_error_figure",
     "text_page",
     "trajectory_topview_figure",
+    "VioFigures",
+    "vio_output_figures",
     "write_calibration_outputs",
     "write_report_pdf",
+    "write_vio_figures",
 ]

@@ -16,6 +16,7 @@ from numpy.typing import NDArray
 from dcc_fg.plots.common import new_figure
 
 FloatArray = NDArray[np.float64]
+MIN_HALF_SPAN_DEG = 1.0  # joint-angle panels span at least +-1 deg around a (near-)constant series
 
 
 def _positions(p: FloatArray, what: str) -> FloatArray:
@@ -48,7 +49,8 @@ def trajectory_topview_figure(
         (line,) = ax.plot(p[:, 0], p[:, 1], label=name, **style)
         ax.plot(p[-1, 0], p[-1, 1], "s", color=line.get_color(), ms=7, mfc="none")
     p0 = _positions(next(iter(curves.values())), "start")[0]
-    ax.plot(p0[0], p0[1], "o", color="tab:green", ms=9, label="start")
+    # white with a black edge, so the start never takes the colour of an estimate's line
+    ax.plot(p0[0], p0[1], "o", mfc="white", mec="k", mew=1.5, ms=9, zorder=5, label="start")
     ax.plot([], [], "s", color="k", mfc="none", label="end")
     ax.set_aspect("equal", adjustable="datalim")
     ax.set_xlabel("x (m)")
@@ -94,9 +96,16 @@ def joint_angles_figure(
         for name, (ts, th) in series.items():
             style = {"color": "k", "lw": 2.0} if name == "ground truth" else {"lw": 1.2}
             ax.plot(ts, np.degrees(th[:, j]), label=name, **style)
+        # a locked joint (scc) is constant: show it on a readable span instead of an offset axis of 1e-10 deg
+        deg = np.concatenate([np.degrees(th[:, j]) for _, th in series.values()])
+        lo, hi = float(deg.min()), float(deg.max())
+        if hi - lo < 2.0 * MIN_HALF_SPAN_DEG:
+            mid = 0.5 * (lo + hi)
+            ax.set_ylim(mid - MIN_HALF_SPAN_DEG, mid + MIN_HALF_SPAN_DEG)
+        ax.ticklabel_format(axis="y", useOffset=False)
         ax.set_ylabel(f"θ_{j + 1} (deg)")
         ax.grid(alpha=0.3)
-    axes[0].legend(fontsize=8, loc="upper right", ncol=len(series))
+    axes[0].legend(fontsize=8, loc="best", ncol=len(series))
     axes[-1].set_xlabel("time (s)")
     fig.suptitle("Joint angles over time")
     return fig
@@ -115,7 +124,8 @@ def error_over_distance_figure(ground_truth: FloatArray, estimates: Mapping[str,
         if p.shape != gt.shape:
             raise ValueError(f"error_over_distance_figure: {name} has shape {p.shape}, ground truth {gt.shape}")
         e = np.linalg.norm(p - gt, axis=1)
-        ax.plot(dist, e, lw=1.3, label=f"{name} (final {e[-1]:.3g} m, {100 * e[-1] / max(dist[-1], 1e-9):.2f}%)")
+        pct = 100 * e[-1] / max(dist[-1], 1e-9)
+        ax.plot(dist, e, lw=1.3, label=f"{name} (final error {e[-1]:.3g} m = {pct:.2g}% of {dist[-1]:.3g} m)")
     ax.set_xlabel("distance travelled (m)")
     ax.set_ylabel("translation error (m)")
     ax.set_ylim(bottom=0)

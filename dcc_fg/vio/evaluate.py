@@ -96,18 +96,12 @@ def _trajectory(t_ns: IntArray, T: FloatArray) -> Any:
     )
 
 
-def evaluate_trajectory(
-    est_t_ns: IntArray,
-    est_T: FloatArray,
-    gt: GroundTruth,
-    align: str = "se3",
-    max_diff: float = 0.01,
-    rpe_delta: float = 1.0,
-) -> dict[str, Any]:
-    """APE / RPE / normalized errors of an estimated body trajectory (see module docstring)."""
-    import copy
-
-    from evo.core import metrics, sync
+def _associate_and_align(
+    est_t_ns: IntArray, est_T: FloatArray, gt: GroundTruth, align: str, max_diff: float
+) -> tuple[Any, Any, float]:
+    """evo trajectories (reference, estimate) associated within ``max_diff`` s, the estimate aligned
+    to the reference in place (SE(3), Sim(3) or not at all), and the alignment's scale."""
+    from evo.core import sync
 
     if align not in ("se3", "sim3", "none"):
         raise ValueError(f"alignment '{align}' is not one of se3, sim3, none")
@@ -123,6 +117,59 @@ def evaluate_trajectory(
     if align != "none":
         _, _, s = est.align(ref, correct_scale=(align == "sim3"))
         scale = float(s)
+    return ref, est, scale
+
+
+@dataclass(frozen=True)
+class AlignedTrajectory:
+    """An estimate associated with the ground truth in time and aligned to it, as the evaluation sees it.
+
+    ``t_s`` (N,) seconds (the estimate's stamps, same clock as the inputs); ``T_WI_est`` and
+    ``T_WI_gt`` (N, 4, 4) body poses in the ground truth's world frame W (metres) after the
+    ``alignment`` (``se3``, ``sim3`` or ``none``; ``scale`` is 1 unless Sim(3)).
+    """
+
+    t_s: FloatArray
+    T_WI_est: FloatArray
+    T_WI_gt: FloatArray
+    alignment: str
+    scale: float
+
+    @property
+    def p_est(self) -> FloatArray:
+        """(N, 3) aligned estimated body positions in W (m)."""
+        return self.T_WI_est[:, :3, 3]
+
+    @property
+    def p_gt(self) -> FloatArray:
+        """(N, 3) ground-truth body positions in W (m) at the same times."""
+        return self.T_WI_gt[:, :3, 3]
+
+
+def align_trajectory(
+    est_t_ns: IntArray, est_T: FloatArray, gt: GroundTruth, align: str = "se3", max_diff: float = 0.01
+) -> AlignedTrajectory:
+    """Associate and align an estimated body trajectory exactly as :func:`evaluate_trajectory` does."""
+    ref, est, scale = _associate_and_align(est_t_ns, est_T, gt, align, max_diff)
+    return AlignedTrajectory(
+        np.asarray(est.timestamps, float), np.asarray(est.poses_se3), np.asarray(ref.poses_se3), align, scale
+    )
+
+
+def evaluate_trajectory(
+    est_t_ns: IntArray,
+    est_T: FloatArray,
+    gt: GroundTruth,
+    align: str = "se3",
+    max_diff: float = 0.01,
+    rpe_delta: float = 1.0,
+) -> dict[str, Any]:
+    """APE / RPE / normalized errors of an estimated body trajectory (see module docstring)."""
+    import copy
+
+    from evo.core import metrics
+
+    ref, est, scale = _associate_and_align(est_t_ns, est_T, gt, align, max_diff)
     ape = metrics.APE(metrics.PoseRelation.translation_part)
     ape.process_data((ref, est))
     rot = metrics.APE(metrics.PoseRelation.rotation_angle_rad)
@@ -174,14 +221,10 @@ def joint_rmse(est_t_ns: IntArray, est_theta: FloatArray, gt: GroundTruth) -> li
     return [float(x) for x in np.sqrt(np.mean(err**2, axis=0))]
 
 
-def evaluate_output(out_dir: str | Path, ground_truth: str | Path, align: str = "auto") -> dict[str, Any]:
-    """Evaluate ``OUT/trajectory.tum`` (+ ``joint_angles.csv``) of a VIO run; writes ``OUT/evaluation.json``.
-
-    ``align='auto'`` uses Sim(3) for runs whose ``summary.json`` says mode ``mono``, SE(3) otherwise.
-    """
-    from dcc_fg.io.outputs import read_joint_angles_csv, write_json
-    from dcc_fg.io.tum import read_tum
-
+def output_mode_and_alignment(out_dir: str | Path, align: str = "auto") -> tuple[str | None, str]:
+    """The mode of a VIO output folder (from ``summary.json``, None if absent) and the alignment to use:
+    ``align`` itself, or for ``'auto'`` Sim(3) when the mode is ``mono`` and SE(3) otherwise.
+    Raises FileNotFoundError when the folder has no ``trajectory.tum``."""
     out_dir = Path(out_dir)
     traj = out_dir / "trajectory.tum"
     if not traj.is_file():
@@ -192,6 +235,20 @@ def evaluate_output(out_dir: str | Path, ground_truth: str | Path, align: str = 
         mode = json.loads(summary.read_text()).get("mode")
     if align == "auto":
         align = "sim3" if mode == "mono" else "se3"
+    return mode, align
+
+
+def evaluate_output(out_dir: str | Path, ground_truth: str | Path, align: str = "auto") -> dict[str, Any]:
+    """Evaluate ``OUT/trajectory.tum`` (+ ``joint_angles.csv``) of a VIO run; writes ``OUT/evaluation.json``.
+
+    ``align='auto'`` uses Sim(3) for runs whose ``summary.json`` says mode ``mono``, SE(3) otherwise.
+    """
+    from dcc_fg.io.outputs import read_joint_angles_csv, write_json
+    from dcc_fg.io.tum import read_tum
+
+    out_dir = Path(out_dir)
+    traj = out_dir / "trajectory.tum"
+    mode, align = output_mode_and_alignment(out_dir, align)
     gt = load_ground_truth(ground_truth)
     t, T = read_tum(traj)
     result = {"mode": mode, "ground_truth": str(ground_truth), **evaluate_trajectory(t, T, gt, align)}
