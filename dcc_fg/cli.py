@@ -1,4 +1,4 @@
-"""Command-line interface: ``dcc-fg demo | calibrate | validate | intrinsics | simulate``."""
+"""Command-line interface: ``dcc-fg demo | calibrate | validate | intrinsics | simulate | vio | evaluate``."""
 
 from __future__ import annotations
 
@@ -56,12 +56,15 @@ def _cmd_intrinsics(args: argparse.Namespace) -> int:
 
 def _cmd_simulate_flight(args: argparse.Namespace) -> int:
     from dcc_fg.sim.flight_bag import write_flight
-    from dcc_fg.sim.trajectory import FlightConfig
+    from dcc_fg.sim.trajectory import FlightConfig, locked_gimbal
 
     if args.duration is not None and args.pattern == "loops":
         raise ValueError("--duration and --pattern loops exclude each other (the loops take 90 s)")
     config = FlightConfig.short(args.duration) if args.duration is not None else FlightConfig()
-    res = write_flight(args.out, args.format, config, seed=args.seed, scale=args.scale, progress=not args.quiet)
+    joints = locked_gimbal() if args.gimbal == "locked" else None
+    res = write_flight(
+        args.out, args.format, config, seed=args.seed, scale=args.scale, joints=joints, progress=not args.quiet
+    )
     print(
         f"wrote {res.bag} ({res.frames} frame pairs, {res.truth.distance:.1f} m, "
         f"{res.render_ms_per_pair:.1f} ms CPU rendering per pair, {res.seconds:.1f} s), {res.calibration}, "
@@ -268,8 +271,18 @@ def build_parser() -> argparse.ArgumentParser:
     )
     f.add_argument("--seed", type=int, default=0, help="seed of the IMU noise, textures and image noise")
     f.add_argument("--scale", type=float, default=1.0, help="image resolution relative to 640x480 (default 1)")
+    f.add_argument(
+        "--gimbal",
+        default="moving",
+        choices=["moving", "locked"],
+        help="moving: sinusoids and +-30 deg slews at up to 60 deg/s per joint (default); locked: held at its mid "
+        "position (for scc runs, angles in calibration.yaml flight.joints_locked, rad)",
+    )
     f.add_argument("--quiet", action="store_true", help="no progress bar")
     f.set_defaults(func=_cmd_simulate_flight)
+    from dcc_fg.vio.command import add_vio_parser
+
+    add_vio_parser(sub)
     e = sub.add_parser(
         "evaluate",
         help="score a VIO run (trajectory.tum, joint_angles.csv) against ground truth",

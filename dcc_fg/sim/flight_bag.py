@@ -167,6 +167,7 @@ def write_flight(
     if bar is not None:
         bar.close()
     cal_path = out / "calibration.yaml"
+    locked = bool(np.ptp(truth.theta, axis=0).max() == 0.0)
     d = cal.to_dict()
     d["imu"] = imu.to_dict()
     d["flight"] = {
@@ -175,6 +176,8 @@ def write_flight(
         "distance_m": truth.distance,
         "scale": scale,
         "start_ns": START_NS,
+        "gimbal": "locked" if locked else "moving",
+        "joints_locked": [float(x) for x in truth.theta[0]] if locked else None,
         "topics": {
             "imu": IMU_TOPIC,
             "static": STATIC_TOPIC,

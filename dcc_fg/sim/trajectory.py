@@ -277,6 +277,11 @@ class JointMotion:
         return [(j, t0, t0 + T) for j in range(self.n_joints) for t0, T, _ in self._slews(j, duration)]
 
 
+def locked_gimbal(mid: tuple[float, ...] | None = None) -> JointMotion:
+    """A gimbal held at ``mid`` (rad; default :class:`JointMotion`'s mid position) for ``scc`` flights."""
+    return JointMotion(mid=mid if mid is not None else JointMotion().mid, sin_amplitude=0.0, slew_amplitude=0.0)
+
+
 # --------------------------------------------------------------------------- world
 @dataclass(frozen=True)
 class World:

@@ -70,6 +70,8 @@ class FrontendConfig:
 
     Attributes:
         max_features: tracks kept per camera.
+        refill_ratio: new corners are detected only when fewer than ``refill_ratio * max_features``
+            tracks are left (Shi-Tomasi over the whole image is the front end's largest cost).
         min_distance: minimum spacing between tracks of one camera.
         quality_level: Shi-Tomasi quality relative to the best corner.
         klt_window, klt_levels: Lucas-Kanade window size and pyramid levels.
@@ -92,6 +94,7 @@ class FrontendConfig:
     """
 
     max_features: int = 150
+    refill_ratio: float = 0.8
     min_distance: float = 20.0
     quality_level: float = 0.01
     klt_window: int = 21
@@ -256,7 +259,7 @@ class CameraTracker:
         """Add Shi-Tomasi corners away from the existing tracks up to ``max_features``."""
         assert self.gray is not None
         need = self.config.max_features - len(self)
-        if need <= 0:
+        if need <= 0 or (len(self) >= self.config.refill_ratio * self.config.max_features):
             return
         w, h = self.camera.resolution
         mask = getattr(self, "_mask", None)

@@ -1,0 +1,248 @@
+"""Images to trajectory: a recorded bag through the front end and the keyframe smoother (``dcc-fg vio``).
+
+One pass over the bag (:class:`~dcc_fg.io.vio_bag.VioBag` reads the IMU topic first, then decodes
+the images one synchronized pair at a time): every frame pair goes through
+:class:`~dcc_fg.vio.frontend.Frontend` (KLT tracks, static RANSAC, static <-> gimbal matching with the
+current T_ds(theta) estimate) and the resulting :class:`~dcc_fg.vio.types.TrackFrame` into
+:class:`~dcc_fg.vio.backend.VioSmoother`.
+
+Gimbal-camera outliers (``dcc`` mode) follow the two stages the paper proposes as future work: the
+smoother first estimates the joint angles of a keyframe with *all* gimbal tracks (Huber loss, no
+rejection), then the front end rejects the gimbal tracks that are inconsistent with the epipolar
+geometry implied by the *updated* extrinsics T_ds(theta_prev), T_ds(theta_cur) and the static
+camera's motion seen by its own tracks, so they are not tracked further
+(:meth:`Frontend.reject_dynamic`; the smoother's gate drops them from the current keyframe).
+
+Between keyframes the joint angles used by the front end are extrapolated linearly from the last
+two keyframe estimates (the gimbal moves at up to ~60 deg/s: one 20 Hz frame is 3 deg).
+
+Frames: ``T_WI`` body (IMU) pose in the world W (gravity along -z), ``T_sI`` IMU -> static camera,
+``T_ds(theta)`` static -> gimbal camera; times in ns; joint angles in rad.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from dcc_fg.io.vio_bag import VioBag
+from dcc_fg.model import GimbalCalibration
+from dcc_fg.vio.backend import NS, InitialState, VioOptions, VioResult, VioSmoother
+from dcc_fg.vio.frontend import Frontend, FrontendConfig, GimbalHint
+from dcc_fg.vio.joint_init import JointFit, fit_joint_angles
+from dcc_fg.vio.types import ImuConfig, TrackFrame
+
+FloatArray = NDArray[np.float64]
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class BagTopics:
+    """Topics of a VIO bag: ``sensor_msgs/Imu`` and the two image topics (``dynamic`` None: static only)."""
+
+    imu: str = "/imu0"
+    static: str = "/cam0/image_raw"
+    dynamic: str | None = "/cam1/image_raw"
+
+
+@dataclass(frozen=True)
+class PipelineOptions:
+    """Front-end side of a run: ``reject_dynamic`` enables the second stage of the gimbal outlier
+    handling; ``tolerance_ns`` pairs static and gimbal images; ``frontend`` overrides the front-end
+    parameters (default: :meth:`FrontendConfig.for_resolution` of the static camera);
+    ``fit_initial_joints`` (``dcc``) starts the joint angles from the first frame's static <-> gimbal
+    matches (:func:`~dcc_fg.vio.joint_init.fit_joint_angles`) instead of taking the guess as is."""
+
+    reject_dynamic: bool = True
+    fit_initial_joints: bool = True
+    tolerance_ns: int = 5_000_000
+    frontend: FrontendConfig | None = None
+
+
+class _ThetaTrack:
+    """Joint angles the front end should assume at a frame time: the smoother's keyframe estimates,
+    extrapolated linearly from the last two keyframes (held when there is only one)."""
+
+    def __init__(self, theta0: FloatArray, t0_ns: int) -> None:
+        self.hist: list[tuple[int, FloatArray]] = [(t0_ns, np.asarray(theta0, float).copy())]
+
+    def push(self, t_ns: int, theta: FloatArray) -> None:
+        self.hist = [self.hist[-1], (t_ns, np.asarray(theta, float).copy())]
+
+    def at(self, t_ns: int) -> FloatArray:
+        t1, th1 = self.hist[-1]
+        if len(self.hist) < 2:
+            return th1.copy()
+        t0, th0 = self.hist[0]
+        if t1 <= t0:
+            return th1.copy()
+        rate = (th1 - th0) / (t1 - t0)
+        return th1 + rate * min(t_ns - t1, t1 - t0)  # extrapolate at most one keyframe interval
+
+
+def run_vio_bag(
+    bag: str | Path,
+    calibration: GimbalCalibration,
+    imu_config: ImuConfig,
+    options: VioOptions,
+    topics: BagTopics | None = None,
+    pipeline: PipelineOptions | None = None,
+    initial: InitialState | None = None,
+    progress: Callable[[int, int, float, float], None] | None = None,
+) -> tuple[VioResult, dict[str, Any]]:
+    """Run the VIO over a ROS1/ROS2 bag (module docstring).
+
+    Args:
+        bag: ROS1 ``.bag`` file or ROS2 bag folder.
+        calibration: the gimbal chain and both cameras (``static_camera`` and, unless ``mono``,
+            ``dynamic_camera`` must be set).
+        imu_config: ``T_sI`` and the IMU noise.
+        options: smoother settings; ``mode`` decides whether the gimbal topic is read.
+        topics: bag topics (default ``/imu0``, ``/cam0/image_raw``, ``/cam1/image_raw``).
+        pipeline: front-end options.
+        initial: state at (or before) the first frame to start from; default: standstill
+            initialization from the first ``options.standstill_window`` seconds of IMU.
+        progress: called after each frame with (frames done, frames total, seconds elapsed, seconds of
+            data processed).
+
+    Returns:
+        the smoother's result (per keyframe) and run statistics (front end, timing, gaps).
+    """
+    topics = topics or BagTopics()
+    pipeline = pipeline or PipelineOptions()
+    if calibration.static_camera is None:
+        raise ValueError("the calibration has no static camera model (cam0 intrinsics are needed for VIO)")
+    mono = options.mode == "mono"
+    if not mono and calibration.dynamic_camera is None:
+        raise ValueError(f"mode '{options.mode}' needs the gimbal camera model (cam1 intrinsics)")
+    if not mono and topics.dynamic is None:
+        raise ValueError(f"mode '{options.mode}' needs the gimbal camera's image topic")
+    t_wall = time.perf_counter()
+    vb = VioBag(bag, topics.imu, topics.static, None if mono else topics.dynamic, tolerance_ns=pipeline.tolerance_ns)
+    L = calibration.n_joints
+    guess: FloatArray | None = None
+    if options.mode == "scc":
+        guess = np.asarray(options.theta_fixed, float)
+    elif initial is not None and initial.theta.size:
+        guess = np.asarray(initial.theta, float)
+    elif options.theta_initial is not None:
+        guess = np.asarray(options.theta_initial, float)
+    theta0 = guess if guess is not None else np.zeros(L)
+    frontend = Frontend(
+        calibration.static_camera,
+        None if mono else calibration.dynamic_camera,
+        pipeline.frontend,
+        T_ds=None if mono else calibration.T_ds(theta0),
+    )
+    smoother: VioSmoother | None = None
+    joint_fit: JointFit | None = None
+    t_first, t_last = int(vb.imu.t_ns[0]), int(vb.imu.t_ns[-1])
+    n_total = len(vb)
+    skipped_outside_imu = 0
+    resets = 0
+    thetas: _ThetaTrack | None = None
+    theta_prev_frame = theta0  # what the front end assumed at the previous frame
+    done = 0
+    t_start_data = 0
+    for vf in vb.frames():
+        done += 1
+        t = int(vf.timestamp_ns)
+        if t < t_first or t > t_last or (initial is not None and t < initial.t_ns):
+            skipped_outside_imu += 1
+            continue
+        if vf.after_gap and smoother is not None:
+            frontend.reset()
+            resets += 1
+        theta_guess = theta0 if thetas is None else thetas.at(t)
+        frame = frontend.process(t, vf.static, vf.dynamic, T_ds=None if mono else calibration.T_ds(theta_guess))
+        if smoother is None:
+            if options.mode == "dcc":
+                joint_fit = _initial_joint_angles(calibration, frame, guess, pipeline.fit_initial_joints)
+                theta0 = joint_fit.theta
+                options = dataclasses.replace(options, theta_initial=tuple(float(x) for x in theta0))
+            start = initial
+            if start is not None:
+                start = InitialState(t, start.T_WI, start.v_W, start.acc_bias, start.gyro_bias, theta0)
+            smoother = VioSmoother(vb.imu, imu_config, None if mono else calibration, options)
+            smoother.initialize(frame, start)
+            theta_guess = smoother.theta.copy() if options.mode == "dcc" else theta0
+            thetas = _ThetaTrack(theta_guess, t)
+            t_start_data = t
+        elif smoother.add_frame(frame) and options.mode == "dcc":
+            assert thetas is not None
+            # stage two: the joint angles were estimated with every gimbal track; now reject with them
+            theta_guess = smoother.theta.copy()
+            thetas.push(t, theta_guess)
+            if pipeline.reject_dynamic and not vf.after_gap:
+                hint = GimbalHint(calibration.T_ds(theta_prev_frame), calibration.T_ds(theta_guess))
+                frontend.reject_dynamic(hint)
+        theta_prev_frame = theta_guess
+        if progress is not None:
+            progress(done, n_total, time.perf_counter() - t_wall, (t - t_start_data) / NS)
+    if smoother is None:
+        raise ValueError(f"{bag}: no camera frame lies within the IMU time span of topic {topics.imu}")
+    result = smoother.result()
+    elapsed = time.perf_counter() - t_wall
+    duration = (int(result.timestamps_ns[-1]) - int(result.timestamps_ns[0])) / NS
+    fe = frontend.stats.summary()
+    result.stats.update(
+        {
+            "processing_time_s": elapsed,
+            "data_duration_s": duration,
+            "real_time_factor": elapsed / duration if duration > 0 else float("nan"),
+            "frames": done - skipped_outside_imu,
+        }
+    )
+    run = {
+        "bag": str(bag),
+        "topics": {"imu": topics.imu, "static": topics.static, "dynamic": None if mono else topics.dynamic},
+        "frame_pairs_in_bag": n_total,
+        "frames_outside_imu": skipped_outside_imu,
+        "image_gaps": len(vb.image_gaps),
+        "imu_gaps": len(vb.imu_gaps),
+        "imu_samples_dropped": vb.imu_check.non_finite + vb.imu_check.out_of_order,
+        "frontend_resets": resets,
+        "initial_joint_angles": None
+        if joint_fit is None
+        else {
+            "theta_rad": joint_fit.theta,
+            "sampson_rms_px": joint_fit.rms * float(calibration.dynamic_camera.intrinsics[0]),  # type: ignore[union-attr]
+            "inlier_pairs": joint_fit.inliers,
+            "pairs": joint_fit.pairs,
+        },
+        "dynamic_tracks_rejected": int(frontend.stats.dynamic_rejected),
+        "frontend": fe,
+    }
+    return result, run
+
+
+def _initial_joint_angles(cal: GimbalCalibration, frame: TrackFrame, guess: FloatArray | None, fit: bool) -> JointFit:
+    """Joint angles at the first frame: fitted to its static <-> gimbal pairs (starting from
+    ``guess``, or from a grid without one); the guess itself when fitting is off or impossible."""
+    common, i_s, i_d = np.intersect1d(frame.static_ids, frame.dynamic_ids, return_indices=True)
+    L = cal.n_joints
+    if fit and common.size >= 2 * L + 2:
+        result = fit_joint_angles(cal, frame.static_xy[i_s], frame.dynamic_xy[i_d], guess)
+        if result.inliers >= max(2 * L + 2, result.pairs // 2):
+            log.info(
+                "initial joint angles %s rad from %d of %d static/gimbal pairs",
+                np.round(result.theta, 4),
+                result.inliers,
+                result.pairs,
+            )
+            return result
+        log.warning("initial joint-angle fit: only %d of %d pairs agree", result.inliers, result.pairs)
+    if guess is None:
+        raise ValueError(
+            f"dcc mode: the first frame has {common.size} static/gimbal matches, too few to find the joint angles; "
+            "give a starting guess (--initial-joints, rad)"
+        )
+    return JointFit(np.asarray(guess, float), float("nan"), 0, int(common.size))
