@@ -626,19 +626,25 @@ class VioSmoother:
             kfs = {ob[0] for ob in tr.obs}
             if len(kfs) < o.min_track_keyframes or added >= o.max_new_landmarks:
                 continue
-            # static observations do not depend on the (uncertain) joint angles: prefer them
-            use = [ob for ob in tr.obs if ob[1] == 0]
-            if len({ob[0] for ob in use}) < 2:
-                use = tr.obs
-            T_Wc = np.array(
-                [
-                    memo[(kk, cam)] if (kk, cam) in memo else memo.setdefault((kk, cam), self._T_Wc(kk, cam))
-                    for kk, cam, _ in use
-                ]
-            )
-            xy = np.array([z for _, _, z in use])
-            p = triangulate(T_Wc, xy)
-            if not self._good_landmark(p, T_Wc, xy):
+            # static observations do not depend on the (uncertain) joint angles: prefer them; fall back
+            # on both cameras (a stereo baseline: what gives landmarks while the body stands still)
+            p, ok = np.full(3, np.nan), False
+            static_obs = [ob for ob in tr.obs if ob[1] == 0]
+            for use in (static_obs, tr.obs):
+                if len({(ob[0], ob[1]) for ob in use}) < 2 or (use is tr.obs and len(use) == len(static_obs)):
+                    continue
+                T_Wc = np.array(
+                    [
+                        memo[(kk, cam)] if (kk, cam) in memo else memo.setdefault((kk, cam), self._T_Wc(kk, cam))
+                        for kk, cam, _ in use
+                    ]
+                )
+                xy = np.array([z for _, _, z in use])
+                p = triangulate(T_Wc, xy)
+                ok = self._good_landmark(p, T_Wc, xy)
+                if ok:
+                    break
+            if not ok:
                 if len(kfs) > 3 * o.min_track_keyframes:
                     del self.tracks[tid]  # never converges: give up on this track
                 continue
