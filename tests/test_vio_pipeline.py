@@ -86,7 +86,7 @@ def test_dcc_joint_angles_and_slews(dcc: dict[str, Any]) -> None:
     rmse = dcc["joint_rmse_rad"]
     init = dcc["run"]["initial_joint_angles"]
     after = slew_recovery_errors(dcc, settle=1.0)
-    print(f"\njoint RMSE {np.round(rmse, 5)} rad; initial fit {init}; max error 1 s after each slew {np.round(after, 5)}")
+    print(f"\njoint RMSE {np.round(rmse, 5)} rad; initial fit {init}; max error 1 s after slews {np.round(after, 5)}")
     assert len(rmse) == 2 and max(rmse) <= 1e-2
     # the first frame's static/gimbal matches put the start within 1e-2 rad without any guess
     assert np.max(np.abs(np.asarray(init["theta_rad"]) - truth.theta[0])) < 1e-2

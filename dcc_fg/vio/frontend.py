@@ -146,6 +146,30 @@ class GimbalHint:
     T_s_cur_prev: FloatArray | None = None
 
 
+def motion_from_pair(x0: FloatArray, x1: FloatArray, E: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """(R, t) with |t| = 1 from an essential matrix and its inlier normalized points (cheirality)."""
+    _, R, t, _ = cv2.recoverPose(E, x0, x1, np.eye(3))
+    return R, t.ravel() / max(float(np.linalg.norm(t)), 1e-12)
+
+
+@dataclass
+class DynamicSnapshot:
+    """Gimbal tracks of one frame (ids, normalized positions now and in the previous frame, NaN for
+    tracks born in it) and the static camera's inlier pair ``(x0, x1, E)`` of that frame."""
+
+    ids: IntArray
+    prev_xy: FloatArray
+    xy: FloatArray
+    static_pair: tuple[FloatArray, FloatArray, FloatArray] | None = None
+    motion: tuple[FloatArray, FloatArray] | None = None
+
+    def static_motion(self) -> tuple[FloatArray, FloatArray] | None:
+        """(R, t) of the static camera between the two frames (|t| = 1), or None (little parallax)."""
+        if self.motion is None and self.static_pair is not None:
+            self.motion = motion_from_pair(*self.static_pair)
+        return self.motion
+
+
 @dataclass
 class FrontendStats:
     """Counters and per-frame timings in milliseconds: wall-clock per stage, and the process CPU
@@ -437,9 +461,7 @@ class Frontend:
         """(R, t) of the static camera between the last two frames from its tracks (|t| = 1), or
         None when the parallax was too small; maps points of the previous frame into the current."""
         if self._static_motion is None and self._static_pair is not None:
-            x0, x1, E = self._static_pair
-            _, R, t, _ = cv2.recoverPose(E, x0, x1, np.eye(3))
-            self._static_motion = (R, t.ravel() / max(np.linalg.norm(t), 1e-12))
+            self._static_motion = motion_from_pair(*self._static_pair)
         return self._static_motion
 
     # ------------------------------------------------------------------ gimbal camera
@@ -455,8 +477,9 @@ class Frontend:
         self.stats.dynamic_rejected += int(removed.shape[0])
         return removed
 
-    def dynamic_outliers(self, hint: GimbalHint) -> BoolArray:
-        """Gimbal tracks inconsistent with the extrinsics of ``hint`` (mask over the current tracks).
+    def dynamic_outliers(self, hint: GimbalHint, snapshot: DynamicSnapshot | None = None) -> BoolArray:
+        """Gimbal tracks inconsistent with the extrinsics of ``hint`` (mask over the current tracks,
+        or over the tracks of ``snapshot``, a frame's state taken with :meth:`dynamic_snapshot`).
 
         With the extrinsics of the previous and the current frame, the gimbal camera's motion is
         ``T_{d1 d0} = T_ds(theta_1) T_{s1 s0} T_ds(theta_0)^-1``; tracks whose Sampson error
@@ -467,11 +490,11 @@ class Frontend:
         those (too little parallax) the static camera is taken as not moving.  Tracks born in
         this frame are never outliers.
         """
-        d = self.dynamic
-        if d is None:
+        if self.dynamic is None:
             return np.zeros(0, dtype=bool)
-        bad = np.zeros(len(d), dtype=bool)
-        both = d.tracked()
+        snap = snapshot if snapshot is not None else self.dynamic_snapshot()
+        bad = np.zeros(snap.ids.shape[0], dtype=bool)
+        both = np.isfinite(snap.prev_xy[:, 0])
         if not np.any(both):
             return bad
         T0, T1 = np.asarray(hint.T_ds_prev, float), np.asarray(hint.T_ds_cur, float)
@@ -479,12 +502,12 @@ class Frontend:
             T_d = T1 @ np.asarray(hint.T_s_cur_prev, float) @ inv_se3(T0)
             R_d, t_d = T_d[:3, :3], T_d[:3, 3]
         else:
-            motion = self.static_motion()
+            motion = snap.static_motion()
             R_s, t_s = motion if motion is not None else (np.eye(3), np.zeros(3))
             R_d = T1[:3, :3] @ R_s @ T0[:3, :3].T
             t_d = T1[:3, :3] @ t_s
-        x0, x1 = d.prev_xy[both], d.xy[both]
-        f = float(np.mean(d.camera.intrinsics[:2]))
+        x0, x1 = snap.prev_xy[both], snap.xy[both]
+        f = float(np.mean(self.dynamic.camera.intrinsics[:2]))
         if np.linalg.norm(t_d) > 1e-6:
             T = np.eye(4)
             T[:3, :3], T[:3, 3] = R_d, t_d
@@ -494,6 +517,25 @@ class Frontend:
             out = ~front | (np.linalg.norm(pred - x1, axis=1) * f > self.config.dynamic_rotation_threshold)
         bad[np.flatnonzero(both)[out]] = True
         return bad
+
+    def dynamic_snapshot(self) -> DynamicSnapshot:
+        """The gimbal tracks of the current frame and the static camera's two-view geometry, for a
+        later :meth:`dynamic_outliers` (e.g. by a back end running a frame behind the front end)."""
+        d = self.dynamic
+        if d is None:
+            raise ValueError("the front end has no gimbal camera")
+        motion = self._static_motion
+        return DynamicSnapshot(d.ids.copy(), d.prev_xy.copy(), d.xy.copy(), self._static_pair, motion)
+
+    def drop_dynamic(self, ids: IntArray) -> int:
+        """Stop tracking the gimbal tracks with these ids (those still alive); returns how many."""
+        d = self.dynamic
+        if d is None or len(ids) == 0:
+            return 0
+        gone = np.isin(d.ids, ids)
+        d.keep(~gone)
+        self.stats.dynamic_rejected += int(gone.sum())
+        return int(gone.sum())
 
     # ------------------------------------------------------------------ static <-> gimbal
     def _match(self) -> None:
