@@ -97,7 +97,9 @@ class VioOptions:
     ``sigma`` is the standard deviation of a normalized image coordinate (pixel sigma / focal
     length); ``robust_k`` the Huber threshold in sigmas; ``theta_random_walk`` the joint-angle
     random walk in rad/sqrt(s); ``theta_fixed`` the locked joint angles of ``scc`` mode;
-    ``theta_initial`` the joint-angle guess of a ``dcc`` run initialized from standstill.
+    ``theta_initial`` the joint-angle guess of a ``dcc`` run initialized from standstill;
+    ``min_gimbal_landmarks`` and ``theta_measurement_inflation``: when and how strongly a direct
+    joint-angle measurement is used (:meth:`VioSmoother.add_frame`).
     """
 
     mode: str = "dcc"
@@ -133,6 +135,8 @@ class VioOptions:
     camera_pose_sigma: float = 1e-4
     relinearize_threshold: float = 0.01
     extra_iterations: int = 0
+    min_gimbal_landmarks: int = 10
+    theta_measurement_inflation: float = 3.0
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -448,8 +452,24 @@ class VioSmoother:
         self.prev_static = dict(zip(frame.static_ids.tolist(), frame.static_xy, strict=True))
         self._update(graph, values, stamps)
 
-    def add_frame(self, frame: TrackFrame) -> bool:
-        """Process one frame; returns True if it became a keyframe."""
+    def next_is_keyframe(self) -> bool:
+        """True if the next :meth:`add_frame` call will make a keyframe."""
+        return self.frame_count % self.opt.keyframe_every == 0
+
+    def gimbal_landmarks(self, frame: TrackFrame) -> int:
+        """How many of the frame's gimbal-camera tracks are mapped landmarks."""
+        return sum(int(tid) in self.active for tid in frame.dynamic_ids)
+
+    def add_frame(self, frame: TrackFrame, theta_measurement: tuple[FloatArray, FloatArray] | None = None) -> bool:
+        """Process one frame; returns True if it became a keyframe.
+
+        ``theta_measurement`` = (theta (L,) rad, covariance (L, L) rad^2): a direct measurement of
+        the joint angles, e.g. from the frame's static <-> gimbal epipolar geometry
+        (:func:`dcc_fg.vio.joint_init.fit_joint_angles`). It is used (``dcc`` mode) only while the
+        gimbal camera sees fewer than ``min_gimbal_landmarks`` mapped landmarks, i.e. when the
+        reprojection factors cannot determine the angles yet (start-up at standstill, after a gap),
+        as the starting value and a prior with the covariance inflated by ``theta_measurement_inflation``.
+        """
         self.frame_count += 1
         if (self.frame_count - 1) % self.opt.keyframe_every:
             return False
@@ -483,6 +503,13 @@ class VioSmoother:
         if self.opt.mode == "dcc":
             dt = (t - t_prev) / NS
             theta0 = self._fit_theta(frame, pred.pose().matrix(), self.theta, self.opt.theta_random_walk * np.sqrt(dt))
+            if theta_measurement is not None and self.gimbal_landmarks(frame) < self.opt.min_gimbal_landmarks:
+                th_m, cov_m = (np.asarray(x, float) for x in theta_measurement)
+                if th_m.shape == (self.L,) and cov_m.shape == (self.L, self.L) and np.all(np.isfinite(cov_m)):
+                    theta0 = th_m.copy()
+                    cov = cov_m * self.opt.theta_measurement_inflation**2 + np.eye(self.L) * 1e-10
+                    graph.add(gtsam.PriorFactorVector(TH(k), th_m, gtsam.noiseModel.Gaussian.Covariance(cov)))
+                    self.stats["theta_measurements"] = self.stats.get("theta_measurements", 0) + 1
             values.insert(TH(k), theta0)
             stamps[TH(k)] = t
             graph.add(

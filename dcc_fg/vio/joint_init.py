@@ -28,16 +28,29 @@ FloatArray = NDArray[np.float64]
 @dataclass(frozen=True)
 class JointFit:
     """Result of :func:`fit_joint_angles`: angles (rad), RMS Sampson error of the inliers
-    (normalized units), inlier count and total pair count."""
+    (normalized units), inlier count, total pair count and the Gauss-Newton covariance of the
+    angles (rad^2, ``rms^2 (J^T W J)^-1`` over the inliers; None when not estimated)."""
 
     theta: FloatArray
     rms: float
     inliers: int
     pairs: int
+    covariance: FloatArray | None = None
 
 
 def _residuals(cal: GimbalCalibration, theta: FloatArray, xy_s: FloatArray, xy_d: FloatArray) -> FloatArray:
     return sampson_distance(essential(cal.T_ds(theta)), xy_s, xy_d)
+
+
+def _jacobian(cal: GimbalCalibration, theta: FloatArray, xy_s: FloatArray, xy_d: FloatArray) -> FloatArray:
+    """Central-difference Jacobian (N, L) of the Sampson errors with respect to theta."""
+    h = 1e-6
+    J = np.empty((xy_s.shape[0], theta.size))
+    for j in range(theta.size):
+        e = np.zeros(theta.size)
+        e[j] = h
+        J[:, j] = (_residuals(cal, theta + e, xy_s, xy_d) - _residuals(cal, theta - e, xy_s, xy_d)) / (2 * h)
+    return J
 
 
 def _gauss_newton(
@@ -46,15 +59,10 @@ def _gauss_newton(
     """Huber-IRLS Gauss-Newton on theta; returns (theta, robust cost)."""
     theta = theta0.astype(float).copy()
     L = theta.size
-    h = 1e-6
     for _ in range(iters):
         r = _residuals(cal, theta, xy_s, xy_d)
         w = np.where(r <= huber, 1.0, huber / np.maximum(r, 1e-300))
-        J = np.empty((r.size, L))
-        for j in range(L):
-            e = np.zeros(L)
-            e[j] = h
-            J[:, j] = (_residuals(cal, theta + e, xy_s, xy_d) - _residuals(cal, theta - e, xy_s, xy_d)) / (2 * h)
+        J = _jacobian(cal, theta, xy_s, xy_d)
         A = J * w[:, None]
         H = J.T @ A + 1e-9 * np.eye(L)
         step = -np.linalg.solve(H, A.T @ r)
@@ -83,7 +91,7 @@ def fit_joint_angles(
         theta_guess: (L,) start, e.g. the gimbal's home position; None: grid only.
         inlier_threshold: Sampson error (normalized units) below which a pair is an inlier; also
             the Huber threshold.
-        grid: grid points per joint over [-pi, pi) for the global search (used when the guess
+        grid: grid points per joint over [-pi, pi) for the global search (0: none; used when the guess
             leaves fewer than half of the pairs as inliers).
 
     Raises:
@@ -101,7 +109,13 @@ def fit_joint_angles(
         r = _residuals(cal, theta, xy_s, xy_d)
         inl = r < inlier_threshold
         rms = float(np.sqrt(np.mean(r[inl] ** 2))) if inl.any() else float("inf")
-        return JointFit(theta, rms, int(inl.sum()), int(r.size))
+        cov = None
+        if inl.sum() > L:
+            J = _jacobian(cal, theta, xy_s[inl], xy_d[inl])
+            H = J.T @ J
+            if np.linalg.cond(H) < 1e12:
+                cov = rms**2 * inl.sum() / (inl.sum() - L) * np.linalg.inv(H)
+        return JointFit(theta, rms, int(inl.sum()), int(r.size), cov)
 
     best: tuple[float, FloatArray] | None = None
     if theta_guess is not None:

@@ -290,7 +290,9 @@ def run_vio_bag(
                 if options.mode == "dcc":
                     kf_prev = (t, smoother.theta.copy())
                     thetas.push(t, smoother.theta)
-            elif smoother.add_frame(frame) and options.mode == "dcc":
+            elif smoother.add_frame(frame, _theta_measurement(smoother, calibration, frame, thetas.at(t))) and (
+                options.mode == "dcc"
+            ):
                 assert kf_prev is not None
                 theta_k = smoother.theta.copy()
                 thetas.push(t, theta_k)
@@ -368,3 +370,21 @@ def _initial_joint_angles(cal: GimbalCalibration, frame: TrackFrame, guess: Floa
             "give a starting guess (--initial-joints, rad)"
         )
     return JointFit(np.asarray(guess, float), float("nan"), 0, int(common.size))
+
+
+def _theta_measurement(
+    smoother: VioSmoother, cal: GimbalCalibration, frame: TrackFrame, theta_pred: FloatArray
+) -> tuple[FloatArray, FloatArray] | None:
+    """dcc keyframes whose gimbal camera sees few mapped landmarks: the joint angles measured from
+    the frame's static <-> gimbal pairs (epipolar fit started at the prediction), with covariance."""
+    if smoother.opt.mode != "dcc" or not smoother.next_is_keyframe():
+        return None
+    if smoother.gimbal_landmarks(frame) >= smoother.opt.min_gimbal_landmarks:
+        return None
+    common, i_s, i_d = np.intersect1d(frame.static_ids, frame.dynamic_ids, return_indices=True)
+    if common.size < max(8, 2 * cal.n_joints + 2):
+        return None
+    fit = fit_joint_angles(cal, frame.static_xy[i_s], frame.dynamic_xy[i_d], theta_pred, grid=0)
+    if fit.covariance is None or fit.inliers < max(8, fit.pairs // 2):
+        return None
+    return fit.theta, fit.covariance
