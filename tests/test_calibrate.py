@@ -60,37 +60,72 @@ def test_gauge_rules_remove_exactly_the_null_space(L: int) -> None:
         assert null_space(S[np.ix_(~fixed, ~fixed)]).shape[1] == len(gauge_fixed_joint_offsets(L, mode))
 
 
+def _seed_study(n_joints: int, seeds: range) -> dict[str, np.ndarray]:
+    """Encoderless calibration of the pinned L-joint mechanism over ``seeds`` (the 20-seed protocol
+    of tests/test_statistics.py): per seed the iterations, the RMS residual per axis, the mean
+    |offset-free joint error| per joint, and the error and Cramer-Rao RMS of T_ds and the joints."""
+    rows: dict[str, list] = {
+        k: [] for k in ("it", "px", "mean_abs", "rot", "tra", "joint", "b_rot", "b_tra", "b_joint")
+    }
+    for seed in seeds:
+        sim = simulate_calibration(seed, SceneConfig(n_joints=n_joints, n_validation=1))
+        res = calibrate(sim.calibration_set, sim.initial, CalibrationOptions(compute_covariance=False))
+        err = evaluate_against_truth(res, sim.truth, sim.joints_calibration)
+        crb = cramer_rao_bound(sim.calibration_set, sim.truth, sim.joints_calibration, sim.T_st_calibration, 0.4)
+        for k, v in (
+            ("it", res.iterations),
+            ("px", res.reprojection_stats()["all"]["rms_per_axis"]),
+            ("mean_abs", np.abs(err.joints).mean(axis=0)),
+            ("rot", err.rotation_rms),
+            ("tra", err.translation_rms),
+            ("joint", err.joint_rms),
+            ("b_rot", crb.rotation_rms),
+            ("b_tra", crb.translation_rms),
+            ("b_joint", crb.joint_rms),
+        ):
+            rows[k].append(v)
+    out = {k: np.array(v) for k, v in rows.items()}
+    rms = lambda x: np.sqrt(np.mean(np.square(x), axis=0))  # noqa: E731
+    ratios = {k: rms(out[k]) / rms(out["b_" + k]) for k in ("rot", "tra", "joint")}
+    print(
+        f"\nL={n_joints}, {len(seeds)} seeds: iterations max {out['it'].max()}; RMS residual per axis "
+        f"{out['px'].min():.4f}-{out['px'].max():.4f} px; RMS over seeds / CRB: T_ds rotation "
+        f"{rms(out['rot']):.3e} / {rms(out['b_rot']):.3e} (x{ratios['rot']:.3f}), translation "
+        f"{rms(out['tra']):.3e} / {rms(out['b_tra']):.3e} (x{ratios['tra']:.3f}), joints {rms(out['joint'])} / "
+        f"{rms(out['b_joint'])} (x{np.round(ratios['joint'], 3)}); mean |offset-free joint error| "
+        f"{out['mean_abs'].mean(axis=0)} rad (worst seed {out['mean_abs'].max(axis=0)})"
+    )
+    out.update({"ratio_" + k: np.atleast_1d(v) for k, v in ratios.items()})
+    return out
+
+
+@pytest.mark.slow
 def test_one_joint_mechanism_reaches_the_cramer_rao_bound() -> None:
-    """L = 1 (L = 2 is covered over 20 seeds in test_statistics.py)."""
-    sim = simulate_calibration(11, SceneConfig(n_joints=1))
-    res = calibrate(sim.calibration_set, sim.initial, CalibrationOptions(compute_covariance=False))
-    err = evaluate_against_truth(res, sim.truth, sim.joints_calibration)
-    crb = cramer_rao_bound(sim.calibration_set, sim.truth, sim.joints_calibration, sim.T_st_calibration, 0.4)
-    # a single seed: allow the sampling spread of an RMS over 81 correlated snapshots
-    assert err.rotation_rms < 1.5 * crb.rotation_rms
-    assert err.translation_rms < 1.5 * crb.translation_rms
-    assert np.all(err.joint_rms < 1.5 * crb.joint_rms)
-    assert np.all(np.abs(err.joints).mean(axis=0) < PAPER_JOINT_ERR[0])
+    """L = 1 over 20 seeds, the criteria of the 2-joint demo (tests/test_statistics.py): RMS errors
+    within 1.2x of the Cramer-Rao bound, residual within 10 % of 0.4 px, joint errors below the
+    paper's joint-1 error (Table II)."""
+    r = _seed_study(1, range(20))
+    assert r["it"].max() < CalibrationOptions().max_iterations
+    assert np.all(np.abs(r["px"] - 0.4) < 0.04)
+    assert r["ratio_rot"][0] < 1.2 and r["ratio_tra"][0] < 1.2 and np.all(r["ratio_joint"] < 1.2)
+    assert np.all(r["mean_abs"].mean(axis=0) < PAPER_JOINT_ERR[0])
 
 
+@pytest.mark.slow
 def test_three_joint_mechanism_converges() -> None:
-    """L = 3, the pinned pan-tilt-roll mechanism (dcc_fg/sim/calibration_scene.py): the solver
-    converges (stops on its tolerance, not on the iteration cap) to the noise floor, T_ds reaches
-    the Cramer-Rao bound, and the offset-free joint angles reach theirs. Three axes span all
-    rotations, so the joint-angle bound of an L = 3 mechanism is set by lever arms and is several
-    times that of L = 2; on this geometry it is still below the paper's joint-1 error (Table II)."""
-    sim = simulate_calibration(0, SceneConfig(n_joints=3, n_validation=1))
-    res = calibrate(sim.calibration_set, sim.initial, CalibrationOptions(compute_covariance=False))
-    assert res.iterations < 100
-    assert abs(res.reprojection_stats()["all"]["rms_per_axis"] - 0.4) < 0.04
-    err = evaluate_against_truth(res, sim.truth, sim.joints_calibration)
-    crb = cramer_rao_bound(sim.calibration_set, sim.truth, sim.joints_calibration, sim.T_st_calibration, 0.4)
-    assert err.rotation_rms < 1.2 * crb.rotation_rms
-    assert err.translation_rms < 1.2 * crb.translation_rms
-    # one seed: the RMS over 81 snapshots of a joint angle dominated by a few weak kinematic
-    # directions has a wide sampling spread, hence 1.5x
-    assert np.all(err.joint_rms < 1.5 * crb.joint_rms)
-    assert np.all(np.abs(err.joints).mean(axis=0) < PAPER_JOINT_ERR[0])
+    """L = 3, the pinned pan-tilt-roll mechanism (dcc_fg/sim/calibration_scene.py), over 20 seeds:
+    every run stops on its tolerance, not on the iteration cap, at the noise floor, and the RMS
+    errors of T_ds and of the offset-free joint angles are within 1.2x of the Cramer-Rao bound.
+
+    Three axes span all rotations, so the joint-angle bound of an L = 3 mechanism is set by lever
+    arms and is several times that of L = 2 (CRB RMS ~5.5e-3, 4.8e-3, 8.2e-3 rad on this geometry):
+    the mean |error| over seeds of every joint is below the paper's joint-1 error (Table II,
+    5.89e-3 rad), but joints 2 and 3 are not below the paper's joint-2 error (2.38e-3 rad)."""
+    r = _seed_study(3, range(20))
+    assert r["it"].max() < CalibrationOptions().max_iterations
+    assert np.all(np.abs(r["px"] - 0.4) < 0.04)
+    assert r["ratio_rot"][0] < 1.2 and r["ratio_tra"][0] < 1.2 and np.all(r["ratio_joint"] < 1.2)
+    assert np.all(r["mean_abs"].mean(axis=0) < PAPER_JOINT_ERR[0])
 
 
 def test_encoders_mode_with_true_angles(demo_sim) -> None:
