@@ -267,12 +267,9 @@ def standstill_state(imu: ImuSamples, t0_ns: int, window: float, gravity: float,
 
 def triangulate(T_Wc: FloatArray, xy: FloatArray) -> FloatArray:
     """Linear (DLT) triangulation of one point from camera poses T_Wc (M, 4, 4) and normalized xy (M, 2)."""
-    rows = []
-    for T, (x, y) in zip(T_Wc, xy, strict=True):
-        P = chain.inv_se3(T)[:3]
-        rows.append(x * P[2] - P[0])
-        rows.append(y * P[2] - P[1])
-    A = np.array(rows)
+    R_cW = np.transpose(T_Wc[:, :3, :3], (0, 2, 1))
+    P = np.concatenate([R_cW, -R_cW @ T_Wc[:, :3, 3:4]], axis=2)  # (M, 3, 4) = [R_cW | t_cW]
+    A = np.concatenate([xy[:, :1] * P[:, 2] - P[:, 0], xy[:, 1:2] * P[:, 2] - P[:, 1]], axis=0)
     _, _, vt = np.linalg.svd(A)
     h = vt[-1]
     if abs(h[3]) < 1e-12:
