@@ -8,9 +8,9 @@ from benchmarks.bench_vio import main
 def test_bench_vio_runs(capsys) -> None:  # type: ignore[no-untyped-def]
     out = main(["--duration", "6"])
     text = capsys.readouterr().out
-    assert "real-time factor" in text and "inline front end / worker thread" in text
+    assert "real-time factor" in text and "inline front end / front-end process" in text
     assert len(out["runs"]) == 4
     for r in out["runs"]:
         assert r["wall_s"] > 0 and r["data_s"] > 4.0 and r["failed_updates"] == 0
         assert r["real_time_factor"] == r["wall_s"] / r["data_s"]
-    assert out["dcc_inline_over_threaded"] > 0 and out["scc_inline_over_threaded"] > 0
+    assert out["dcc_inline_over_parallel"] > 0 and out["scc_inline_over_parallel"] > 0

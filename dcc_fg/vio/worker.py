@@ -1,0 +1,251 @@
+"""Where the VIO front end runs: inline, or in a child process one or two frames ahead of the smoother.
+
+The smoother (GTSAM) holds the GIL through its updates, so a thread cannot overlap the front end
+with it; a child process can. The child opens the bag itself (:class:`~dcc_fg.io.vio_bag.VioBag`),
+decodes and tracks every frame pair (:class:`~dcc_fg.vio.frontend.Frontend`) and sends the tracks
+to the parent; the parent sends back the joint angles of each new keyframe (the front end's
+T_ds(theta) guess for the static <-> gimbal matching) and the ids of gimbal tracks to drop (the
+second stage of the gimbal outlier handling). Both arrive one or two frames late, which only
+delays when a rejected track stops being tracked.
+
+Both modes have the same interface (:class:`FrontendWorker`): iterate for :class:`Tracked`
+frames, :meth:`~FrontendWorker.push_theta`, :meth:`~FrontendWorker.drop`, and after the
+iteration the counters and the front end's statistics. Times in ns, angles in rad.
+"""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing as mp
+import queue
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from dcc_fg.io.vio_bag import VioBag
+from dcc_fg.model import GimbalCalibration
+from dcc_fg.vio.frontend import DynamicSnapshot, Frontend, FrontendConfig
+from dcc_fg.vio.types import TrackFrame
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+MODES = ("process", "inline")
+
+
+class ThetaTrack:
+    """Joint angles the front end should assume at a frame time: the smoother's keyframe estimates,
+    extrapolated linearly from the last two keyframes (held when there is only one)."""
+
+    def __init__(self, theta0: FloatArray, t0_ns: int) -> None:
+        self.hist: list[tuple[int, FloatArray]] = [(t0_ns, np.asarray(theta0, float).copy())]
+
+    def push(self, t_ns: int, theta: FloatArray) -> None:
+        self.hist = [self.hist[-1], (int(t_ns), np.asarray(theta, float).copy())]
+
+    def at(self, t_ns: int) -> FloatArray:
+        t1, th1 = self.hist[-1]
+        if len(self.hist) < 2 or self.hist[-1][0] <= self.hist[0][0]:
+            return th1.copy()
+        t0, th0 = self.hist[0]
+        rate = (th1 - th0) / (t1 - t0)
+        return th1 + rate * min(t_ns - t1, t1 - t0)  # extrapolate at most one keyframe interval
+
+
+@dataclass(frozen=True)
+class Tracked:
+    """One frame out of the front end: its index among the bag's frame pairs, its tracks, whether it
+    follows a gap, and the gimbal-track snapshot for the outlier test (None unless requested)."""
+
+    index: int
+    frame: TrackFrame
+    after_gap: bool
+    snapshot: DynamicSnapshot | None
+
+
+@dataclass(frozen=True)
+class WorkerSpec:
+    """Everything the front end needs, picklable for a child process."""
+
+    bag: str
+    imu_topic: str
+    static_topic: str
+    dynamic_topic: str | None
+    tolerance_ns: int
+    calibration: GimbalCalibration
+    config: FrontendConfig | None
+    theta0: tuple[float, ...]
+    t_range: tuple[int, int]
+    snapshots: bool
+
+
+class _Tracker:
+    """The front end over a frame stream: skips frames outside ``t_range``, resets after gaps,
+    applies drops and joint-angle pushes, and counts."""
+
+    def __init__(self, spec: WorkerSpec) -> None:
+        self.spec = spec
+        cal = spec.calibration
+        assert cal.static_camera is not None
+        mono = spec.dynamic_topic is None
+        theta0 = np.asarray(spec.theta0, float)
+        self.frontend = Frontend(
+            cal.static_camera,
+            None if mono else cal.dynamic_camera,
+            spec.config,
+            T_ds=None if mono else cal.T_ds(theta0),
+        )
+        self.thetas = ThetaTrack(theta0, spec.t_range[0])
+        self.skipped = self.resets = self.processed = 0
+
+    def counters(self) -> dict[str, Any]:
+        return {
+            "skipped": self.skipped,
+            "resets": self.resets,
+            "processed": self.processed,
+            "dynamic_rejected": int(self.frontend.stats.dynamic_rejected),
+            "stats": self.frontend.stats.summary(),
+        }
+
+    def frames(self, bag: VioBag) -> Iterator[Tracked]:
+        fe, spec = self.frontend, self.spec
+        mono = fe.dynamic is None
+        started = False
+        for index, vf in enumerate(bag.frames()):
+            t = int(vf.timestamp_ns)
+            if not spec.t_range[0] <= t <= spec.t_range[1]:
+                self.skipped += 1
+                continue
+            if vf.after_gap and started:
+                fe.reset()
+                self.resets += 1
+            T_ds = None if mono else spec.calibration.T_ds(self.thetas.at(t))
+            frame = fe.process(t, vf.static, vf.dynamic, T_ds=T_ds)
+            started = True
+            self.processed += 1
+            yield Tracked(index, frame, vf.after_gap, fe.dynamic_snapshot() if spec.snapshots else None)
+
+
+def _open_bag(spec: WorkerSpec) -> VioBag:
+    return VioBag(spec.bag, spec.imu_topic, spec.static_topic, spec.dynamic_topic, tolerance_ns=spec.tolerance_ns)
+
+
+def _child_main(spec: WorkerSpec, out: Any, ctrl: Any) -> None:
+    """Child process: track every frame, send :class:`Tracked` items, obey ``ctrl`` messages."""
+    logging.disable(logging.WARNING)  # the parent has read the same bag and reported its problems
+    try:
+        tracker = _Tracker(spec)
+        bag = _open_bag(spec)
+        stop = False
+
+        def apply_control(block: bool = False) -> bool:
+            while True:
+                try:
+                    msg = ctrl.get(block=block, timeout=0.1) if block else ctrl.get_nowait()
+                except queue.Empty:
+                    return False
+                if msg[0] == "stop":
+                    return True
+                if msg[0] == "theta":
+                    tracker.thetas.push(msg[1], msg[2])
+                elif msg[0] == "drop":
+                    tracker.frontend.drop_dynamic(msg[1])
+                block = False
+
+        for item in tracker.frames(bag):
+            if apply_control():
+                stop = True
+                break
+            while True:  # bounded queue: wait for the smoother, but keep obeying control messages
+                try:
+                    out.put(item, timeout=0.1)
+                    break
+                except queue.Full:
+                    if apply_control():
+                        stop = True
+                        break
+            if stop:
+                break
+        out.put(("end", tracker.counters()))
+    except BaseException as exc:  # reported to the parent, which raises it
+        out.put(("error", type(exc).__name__, str(exc)))
+
+
+class FrontendWorker:
+    """The front end over a bag's frames, ``inline`` or in a child ``process`` (module docstring)."""
+
+    def __init__(self, spec: WorkerSpec, mode: str = "process") -> None:
+        if mode not in MODES:
+            raise ValueError(f"front-end worker mode '{mode}' is not one of {', '.join(MODES)}")
+        self.spec, self.mode = spec, mode
+        self.counters: dict[str, Any] = {}
+        self._tracker: _Tracker | None = None
+        self._proc: Any = None
+        if mode == "process":
+            # fork: no re-import of the caller's main module (spawn would need an ``if __name__ ==
+            # "__main__"`` guard in every user script); the child is forked before the smoother has
+            # run, so no GTSAM or OpenCV worker threads exist to be inherited
+            ctx = mp.get_context("fork" if "fork" in mp.get_all_start_methods() else "spawn")
+            self._out = ctx.Queue(maxsize=3)
+            self._ctrl = ctx.Queue()
+            self._proc = ctx.Process(target=_child_main, args=(spec, self._out, self._ctrl), daemon=True)
+        else:
+            self._tracker = _Tracker(spec)
+
+    def push_theta(self, t_ns: int, theta: FloatArray) -> None:
+        """The smoother's joint angles at keyframe time ``t_ns`` (rad)."""
+        if self._tracker is not None:
+            self._tracker.thetas.push(t_ns, theta)
+        else:
+            self._ctrl.put(("theta", int(t_ns), np.asarray(theta, float)))
+
+    def drop(self, ids: IntArray) -> None:
+        """Stop tracking these gimbal-camera track ids."""
+        if len(ids) == 0:
+            return
+        if self._tracker is not None:
+            self._tracker.frontend.drop_dynamic(np.asarray(ids, np.int64))
+        else:
+            self._ctrl.put(("drop", np.asarray(ids, np.int64)))
+
+    def __iter__(self) -> Iterator[Tracked]:
+        if self._tracker is not None:
+            yield from self._tracker.frames(_open_bag(self.spec))
+            self.counters = self._tracker.counters()
+            return
+        self._proc.start()
+        while True:
+            try:
+                item = self._out.get(timeout=1.0)
+            except queue.Empty:
+                if not self._proc.is_alive():
+                    raise RuntimeError(
+                        f"the front-end process for {self.spec.bag} died (exit code {self._proc.exitcode})"
+                    ) from None
+                continue
+            if isinstance(item, tuple):
+                if item[0] == "error":
+                    kind = {"ValueError": ValueError, "FileNotFoundError": FileNotFoundError}.get(item[1], RuntimeError)
+                    raise kind(
+                        item[2] if kind is not RuntimeError else f"front end on {Path(self.spec.bag)}: {item[2]}"
+                    )
+                self.counters = item[1]
+                return
+            yield item
+
+    def close(self) -> None:
+        """Stop the child process (if any) and wait for it."""
+        if self._proc is None or self._proc.pid is None:
+            return
+        if self._proc.is_alive():
+            self._ctrl.put(("stop",))
+            while self._proc.is_alive():  # unblock a child waiting on a full queue
+                try:
+                    self._out.get(timeout=0.1)
+                except queue.Empty:
+                    pass
+                self._proc.join(timeout=0.1)
+        self._proc.join()
