@@ -388,6 +388,10 @@ def auto_initialize(
         raise ValueError(f"{data.source}: the snapshot list is empty")
     T = pnp_T_ds(data) if T_ds is None else T_ds
     K = T.shape[0]
+    if n_joints > 0:
+        from dcc_fg.calibrate import check_joint_motion  # calibrate never imports auto_init
+
+        check_joint_motion(data, T, n_joints)  # a joint that never moves: say so before fitting noise
     cams = {"static_camera": data.static_camera, "dynamic_camera": data.dynamic_camera}
     if n_joints == 0:
         R = _project_so3(T[:, :3, :3].sum(axis=0))

@@ -56,6 +56,7 @@ FloatArray = NDArray[np.float64]
 MODES = ("encoderless", "encoders", "validate")
 FORMULATIONS = ("bundle", "two_way")
 KIN_KEY = gtsam.symbol("k", 0)
+MIN_ROTATION_SPREAD_RAD = np.deg2rad(0.5)  # joint motion check (see check_joint_motion)
 GAUGE_SIGMA = 1e-6  # rad, prior on the mean of theta_L (a pure gauge direction: it costs nothing)
 
 
@@ -406,6 +407,8 @@ def calibrate(
     kin_key = KIN_KEY if (~fixed).any() else None
 
     thetas_before_fit = thetas0.copy()
+    if opt.mode == "encoderless" and L > 0:
+        check_joint_motion(data, T_dt0 @ np.linalg.inv(T_st0), L, thetas_before_fit, initial)
     kin_start = initial.kin.copy()
     if opt.mode != "validate" and L > 0:
         kin_start, thetas_fit, pose_rms = robust_pose_level_init(
@@ -627,6 +630,94 @@ def robust_pose_level_init(
         if cand[2] < best[2]:
             best = cand
     return best
+
+
+def rotation_spread(T_ds: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Principal directions of the K relative rotations ``R_ds,i``: the rotation vectors
+    ``Log(R_mean^T R_ds,i)`` about the chordal mean (right perturbations, static-camera frame).
+
+    Returns:
+        (RMS spread (3,) in rad, largest first; the directions as the columns of a 3x3 matrix).
+    """
+    R_mean = mean_pose(T_ds)[:3, :3]
+    r = np.array([gtsam.Rot3.Logmap(gtsam.Rot3(R_mean.T @ T[:3, :3])) for T in T_ds])
+    r -= r.mean(axis=0)
+    _, sv, Vt = np.linalg.svd(r, full_matrices=False)
+    return sv / np.sqrt(len(r)), Vt.T
+
+
+def check_joint_motion(
+    data: CalibrationDataset,
+    T_ds_pnp: FloatArray,
+    L: int,
+    thetas0: FloatArray | None = None,
+    initial: GimbalCalibration | None = None,
+) -> None:
+    """Refuse (ValueError) data in which the dynamic camera does not rotate about enough axes.
+
+    Each moving joint rotates the dynamic camera about its own axis, so L joints with non-parallel
+    axes give relative rotations (``T_ds`` from PnP in both cameras) that spread along min(L, 3)
+    directions. A joint that never moves leaves a direction flat (RMS spread below
+    ``MIN_ROTATION_SPREAD_RAD``; PnP noise is ~0.1-0.3 deg here), and the DH parameters next to it
+    become unobservable. In encoderless mode the joint angles are free per snapshot, so the
+    degeneracy is only approximate at a fitted start and the information-matrix check can miss it;
+    the solve then "succeeds" with meaningless joint angles.
+
+    This sees every locked joint for L <= 2. For L = 3 two moving joints already spread the
+    rotations over 3 directions, so a locked joint of an L = 3 mechanism is left to the
+    information-matrix check in :func:`calibrate` (which catches most such cases, not all).
+
+    Which joint is flat is not visible in the images alone (one joint rotating about a fixed axis
+    looks the same whichever it is); it is named from ``thetas0`` (initial angles spanning < 2 deg)
+    or else from ``initial``'s joint axes (the axis the observed rotations do not use).
+    """
+    spread, V = rotation_spread(T_ds_pnp)
+    need = min(L, 3)
+    n_dirs = int(np.sum(spread > MIN_ROTATION_SPREAD_RAD))
+    if n_dirs >= need:
+        return
+    n_flat = need - n_dirs
+    msg = (
+        f"{data.source}: the dynamic camera rotates about only {n_dirs} independent axis direction(s) relative "
+        f"to the static camera (RMS spread {', '.join(f'{np.rad2deg(x):.2f}' for x in spread)} deg along the "
+        f"principal directions; below {np.rad2deg(MIN_ROTATION_SPREAD_RAD):.1f} deg counts as none), but {L} "
+        f"joint(s) need {need}"
+    )
+    named: list[str] = []
+    if thetas0 is not None:
+        span = np.ptp(np.asarray(thetas0, float), axis=0)
+        flat = [j for j in np.argsort(span, kind="stable")[:n_flat] if span[j] < np.deg2rad(2.0)]
+        if len(flat) == n_flat:
+            named = [
+                f"joint {j + 1} never moves during the recording (its angles span only {span[j]:.2e} rad): "
+                f"joint {j + 1} is unobservable"
+                for j in flat
+            ]
+    if not named and initial is not None and thetas0 is not None:
+        # fraction of each joint's axis (static-camera frame) inside the observed rotation directions
+        M = V[:, :n_dirs]
+        use = np.zeros(L)
+        for th in np.asarray(thetas0, float):
+            Jt = chain.d_T_ds_tangent(initial.kin, th, L)[1][:3]
+            axes = Jt / np.linalg.norm(Jt, axis=0)
+            use += np.linalg.norm(M.T @ axes, axis=0) / len(thetas0)
+        order = np.argsort(use, kind="stable")
+        gap = use[order[n_flat]] - use[order[n_flat - 1]] if n_flat < L else 1.0
+        if gap > 0.3:
+            named = [
+                f"joint {j + 1} never moves during the recording (by the initial kinematics, its axis is "
+                f"{np.rad2deg(np.arccos(min(use[j], 1.0))):.0f} deg away from every observed rotation): "
+                f"joint {j + 1} is unobservable"
+                for j in order[:n_flat]
+            ]
+    if named:
+        msg += "; " + "; ".join(named)
+    else:
+        msg += (
+            "; a joint never moves or the joints move together (images alone do not tell which joint: give "
+            "joint readings, e.g. joints.csv or a JointState topic, or a gimbal.yaml)"
+        )
+    raise ValueError(msg)
 
 
 def _raise_unobservable(

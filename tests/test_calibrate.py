@@ -199,16 +199,33 @@ def test_bad_input_too_few_snapshots(demo_sim) -> None:
         calibrate(data, demo_sim.initial)
 
 
-def test_bad_input_joint_never_moves(demo_sim) -> None:
-    data = demo_sim.calibration_set
-    snaps = [replace(s, joints=np.array([s.joints[0], 0.0])) for s in data.snapshots]
-    # the true motion still moves joint 2; simulate a mechanism whose joint 2 is locked instead
-    sim = simulate_calibration(2, SceneConfig(n_calibration=20, n_validation=1))
-    locked = np.column_stack([sim.joints_calibration[:, 0], np.zeros(20)])
+@pytest.mark.parametrize("target", ["checkerboard", "aprilgrid"])
+@pytest.mark.parametrize("locked_joint", [1, 2])
+@pytest.mark.parametrize("guesses", [True, False], ids=["with_guesses", "pnp_fit"])
+def test_bad_input_joint_never_moves(target: str, locked_joint: int, guesses: bool) -> None:
+    """A mechanism with one joint locked: the error names that joint, from the initial angles
+    (guesses that span nothing) or, without guesses, from the initial kinematics' joint axes."""
+    from dcc_fg.sim.calibration_scene import simulate_snapshots
+    from dcc_fg.targets import TargetGeometry
+
+    extra = {"target": TargetGeometry.aprilgrid(6, 5, 0.06, 0.3)} if target == "aprilgrid" else {}
+    sim = simulate_calibration(2, SceneConfig(n_calibration=20, n_validation=1, **extra))
+    locked = sim.joints_calibration.copy()
+    locked[:, locked_joint - 1] = locked[:, locked_joint - 1].mean()
+    data, _, _ = simulate_snapshots(sim.truth, locked, sim.config, np.random.default_rng(0), "locked joint")
+    data.snapshots = [replace(s, joints=t if guesses else None) for s, t in zip(data.snapshots, locked, strict=True)]
+    with pytest.raises(ValueError, match=f"joint {locked_joint} never moves.*joint {locked_joint} is unobservable"):
+        calibrate(data, sim.initial)
+
+
+def test_joint_never_moves_without_kinematics_says_it_cannot_tell_which() -> None:
+    """With no gimbal.yaml (automatic initialization) the images alone do not tell which joint is
+    locked, and the error says so instead of fitting a mechanism to noise."""
+    from dcc_fg.auto_init import auto_initialize
     from dcc_fg.sim.calibration_scene import simulate_snapshots
 
-    data2, _, _ = simulate_snapshots(sim.truth, locked, sim.config, np.random.default_rng(0), "locked-joint-2")
-    data2.snapshots = [replace(s, joints=t) for s, t in zip(data2.snapshots, locked, strict=True)]
-    with pytest.raises(ValueError, match="joint 2 never moves"):
-        calibrate(data2, sim.initial)
-    assert snaps  # the demo data itself is untouched
+    sim = simulate_calibration(2, SceneConfig(n_calibration=20, n_validation=1))
+    locked = np.column_stack([sim.joints_calibration[:, 0], np.zeros(20)])
+    data, _, _ = simulate_snapshots(sim.truth, locked, sim.config, np.random.default_rng(0), "locked joint")
+    with pytest.raises(ValueError, match="rotates about only 1 independent axis.*images alone do not tell which"):
+        auto_initialize(data, 2)

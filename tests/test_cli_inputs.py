@@ -136,3 +136,73 @@ def test_progress_bar_on_a_terminal_unless_quiet(
     err = capsys.readouterr().err
     assert "at least 1000 common target points" in err
     assert ("detect images:" in err and "pair/s" in err) != quiet
+
+
+# The remaining bad inputs of issue 3, each through the whole command (error text, exit code,
+# nothing written to OUT).
+
+
+def test_truncated_bag(small: RenderedCalibration, tmp_path, capsys) -> None:  # noqa: ANN001
+    bag = write_ros1_bag(tmp_path / "cut.bag", list(ImageFolder(small.data))[:4])
+    data = bag.read_bytes()
+    bag.write_bytes(data[: int(0.7 * len(data))])
+    _fails(_args(small, bag, tmp_path / "out"), tmp_path / "out", capsys, "cut.bag", "truncated or corrupt bag")
+
+
+def test_target_never_detected(small: RenderedCalibration, tmp_path, capsys) -> None:  # noqa: ANN001
+    import cv2
+    import numpy as np
+
+    data = tmp_path / "images"
+    shutil.copytree(small.data, data)
+    for png in data.glob("cam*/*.png"):
+        img = cv2.imread(str(png), cv2.IMREAD_UNCHANGED)
+        cv2.imwrite(str(png), np.full_like(img, 128))  # same size, no board
+    _fails(_args(small, data, tmp_path / "out"), tmp_path / "out", capsys, "never detected", "cam0", "cam1")
+
+
+def test_timestamps_that_never_pair(small: RenderedCalibration, tmp_path, capsys) -> None:  # noqa: ANN001
+    data = tmp_path / "images"
+    shutil.copytree(small.data, data)
+    for png in sorted((data / "cam1").glob("*.png"), reverse=True):  # every dynamic frame half a period (50 ms) later
+        png.rename(png.with_name(f"{int(png.stem) + 50_000_000}.png"))
+    _fails(_args(small, data, tmp_path / "out"), tmp_path / "out", capsys, "never pair", "cam0", "cam1")
+
+
+def test_joint_that_never_moves(tmp_path, capsys) -> None:  # noqa: ANN001
+    """A recording in which joint 2 is locked (detections folder + joints.csv): with --gimbal the
+    command names joint 2 as unobservable; with the automatic initialization (no gimbal.yaml, no
+    joint readings) it says that the images alone do not tell which joint never moves."""
+    import numpy as np
+
+    from dcc_fg.io.camchain import CamchainEntry, camchain_to_yaml
+    from dcc_fg.io.detections import write_detection_csv
+    from dcc_fg.sim.calibration_scene import SceneConfig, simulate_calibration, simulate_snapshots
+    from dcc_fg.targets import TargetGeometry
+
+    grid = TargetGeometry.aprilgrid(6, 5, 0.06, 0.3)
+    sim = simulate_calibration(2, SceneConfig(n_calibration=20, n_validation=1, target=grid))
+    locked = np.column_stack([sim.joints_calibration[:, 0], np.zeros(20)])
+    data, _, _ = simulate_snapshots(sim.truth, locked, sim.config, np.random.default_rng(0), "locked")
+    root = tmp_path / "detections"
+    for cam in ("cam0", "cam1"):
+        (root / cam).mkdir(parents=True)
+    for s in data.snapshots:
+        write_detection_csv(root / "cam0" / f"{s.timestamp_ns}.csv", s.timestamp_ns, s.static, grid)
+        write_detection_csv(root / "cam1" / f"{s.timestamp_ns}.csv", s.timestamp_ns, s.dynamic, grid)
+    lines = ["timestamp_ns,theta_1,theta_2"] + [
+        f"{s.timestamp_ns},{t[0]:.9f},{t[1]:.9f}" for s, t in zip(data.snapshots, locked, strict=True)
+    ]
+    (root / "joints.csv").write_text("\n".join(lines) + "\n")
+    camchain = tmp_path / "camchain.yaml"
+    camchain.write_text(
+        camchain_to_yaml({"cam0": CamchainEntry(data.static_camera), "cam1": CamchainEntry(data.dynamic_camera)})
+    )
+    gimbal = tmp_path / "gimbal.yaml"
+    sim.initial.save(gimbal)
+    base = ["calibrate", str(root), "--camchain", str(camchain)]
+    out = tmp_path / "out"
+    _fails([*base, "--gimbal", str(gimbal), "--out", str(out)], out, capsys, "joint 2 never moves", "unobservable")
+    (root / "joints.csv").unlink()
+    out = tmp_path / "out_auto"
+    _fails([*base, "--joints", "2", "--out", str(out)], out, capsys, "never moves", "images alone do not tell which")
