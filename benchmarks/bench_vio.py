@@ -20,6 +20,7 @@ Usage: ``python benchmarks/bench_vio.py [--duration 60] [--seed 0] [--keep DIR] 
 from __future__ import annotations
 
 import argparse
+import json
 import tempfile
 import time
 from pathlib import Path
@@ -39,6 +40,31 @@ def _flight_config(duration: float) -> FlightConfig:
     return FlightConfig(duration=duration) if duration >= 40.0 else FlightConfig.short(duration)
 
 
+def _flight(folder: Path, cfg: FlightConfig, seed: int, moving: bool) -> FlightBag:
+    """Render a flight, or reuse one that ``--keep`` left in ``folder`` with the same settings."""
+    marker = folder / "bench_settings.json"
+    settings = json.dumps({"duration": cfg.duration, "loops": cfg.loops, "seed": seed, "moving": moving})
+    if marker.is_file() and marker.read_text() == settings:
+        from dcc_fg.sim.trajectory import simulate_flight
+
+        cal, imu = load_flight_calibration(folder / "calibration.yaml")
+        joints = None if moving else locked_gimbal()
+        truth = simulate_flight(cfg, imu, joints, seed=seed)
+        return FlightBag(
+            folder / "flight",
+            folder / "calibration.yaml",
+            folder / "ground_truth.tum",
+            folder / "ground_truth_joints.csv",
+            truth,
+            len(truth.frame_t_ns),
+            0.0,
+            0.0,
+        )
+    fb = write_flight(folder, "ros2", cfg, seed=seed, joints=None if moving else locked_gimbal())
+    marker.write_text(settings)
+    return fb
+
+
 def run_mode(fb: FlightBag, mode: str, parallel: bool) -> dict[str, Any]:
     """One ``dcc`` or ``scc`` run over a rendered flight bag, timed and scored."""
     cal, imu = load_flight_calibration(fb.calibration)
@@ -48,8 +74,10 @@ def run_mode(fb: FlightBag, mode: str, parallel: bool) -> dict[str, Any]:
         fixed = tuple(yaml.safe_load(fb.calibration.read_text())["flight"]["joints_locked"])
     opts = VioOptions(mode=mode, sigma=1.0 / focal, keyframe_every=3, theta_fixed=fixed)
     t0 = time.perf_counter()
+    c0 = time.process_time()
     res, run = run_vio_bag(fb.bag, cal, imu, opts, pipeline=PipelineOptions(worker="process" if parallel else "inline"))
     wall = time.perf_counter() - t0
+    cpu = time.process_time() - c0
     gt = load_ground_truth(fb.bag)
     ev = evaluate_trajectory(res.timestamps_ns, res.T_WI, gt, "se3")
     return {
@@ -58,6 +86,8 @@ def run_mode(fb: FlightBag, mode: str, parallel: bool) -> dict[str, Any]:
         "wall_s": wall,
         "data_s": res.stats["data_duration_s"],
         "real_time_factor": wall / res.stats["data_duration_s"],
+        "cpu_s": cpu,
+        "frontend_process_cpu_s": run["frontend_process_cpu_s"] if parallel else None,
         "normalized_translation_rmse_percent": ev["normalized_translation_rmse_percent"],
         "distance_m": ev["distance_m"],
         "joint_rmse_rad": joint_rmse(res.timestamps_ns, res.theta, gt) if mode == "dcc" else None,
@@ -70,8 +100,11 @@ def _line(r: dict[str, Any]) -> str:
     j = r["joint_rmse_rad"]
     jtxt = "" if j is None else "  joint RMSE " + ", ".join(f"{x:.2e}" for x in j) + " rad"
     kind = "front-end process" if r["parallel"] else "inline (baseline)"
+    cpu = f"CPU {r['cpu_s']:.1f} s" + (
+        f" + front-end process {r['frontend_process_cpu_s']:.1f} s" if r["frontend_process_cpu_s"] is not None else ""
+    )
     return (
-        f"{r['mode']:4s} {kind:18s} {r['wall_s']:6.1f} s for {r['data_s']:.1f} s of data  "
+        f"{r['mode']:4s} {kind:18s} {r['wall_s']:6.1f} s for {r['data_s']:.1f} s of data ({cpu})  "
         f"real-time factor {r['real_time_factor']:.3f}  norm. transl. RMSE "
         f"{r['normalized_translation_rmse_percent']:.4f} % over {r['distance_m']:.0f} m{jtxt}"
     )
@@ -89,8 +122,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         cfg = _flight_config(a.duration)
         t0 = time.perf_counter()
         flights = {
-            "dcc": write_flight(root / "moving", "ros2", cfg, seed=a.seed),
-            "scc": write_flight(root / "locked", "ros2", cfg, seed=a.seed, joints=locked_gimbal()),
+            "dcc": _flight(root / "moving", cfg, a.seed, moving=True),
+            "scc": _flight(root / "locked", cfg, a.seed, moving=False),
         }
         print(
             f"rendered 2 flights of {a.duration:.0f} s ({flights['dcc'].truth.distance:.0f} m, "

@@ -97,7 +97,7 @@ class FrontendConfig:
     refill_ratio: float = 0.8
     min_distance: float = 20.0
     quality_level: float = 0.01
-    klt_window: int = 21
+    klt_window: int = 17
     klt_levels: int = 3
     fb_threshold: float = 1.0
     border: int = 5
@@ -105,7 +105,7 @@ class FrontendConfig:
     ransac_confidence: float = 0.99999
     min_parallax: float = 1.0
     ransac_window: int = 4
-    match_every: int = 1
+    match_every: int = 2
     match_ratio: float = 0.8
     match_max_hamming: int = 64
     match_epipolar_threshold: float = 0.02
@@ -125,7 +125,7 @@ class FrontendConfig:
             return FrontendConfig()
         return FrontendConfig(
             min_distance=max(8.0, round(20.0 * s)),
-            klt_window=21 if width >= 480 else 15,
+            klt_window=17 if width >= 480 else 15,
             max_features=150 if width >= 400 else 120,
         )
 
@@ -226,7 +226,7 @@ class CameraTracker:
         self._lk = {
             "winSize": (config.klt_window, config.klt_window),
             "maxLevel": config.klt_levels,
-            "criteria": (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01),
+            "criteria": (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 20, 0.03),
         }
 
     def __len__(self) -> int:

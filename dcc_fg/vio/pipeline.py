@@ -209,6 +209,7 @@ def run_vio_bag(
         "imu_samples_dropped": vb.imu_check.non_finite + vb.imu_check.out_of_order,
         "frontend_resets": worker.counters["resets"],
         "frontend_worker": pipeline.worker,
+        "frontend_process_cpu_s": worker.counters["cpu_s"] if pipeline.worker == "process" else None,
         "initial_joint_angles": None
         if joint_fit is None
         else {

@@ -1,7 +1,8 @@
 """Where the VIO front end runs: inline, or in a child process one or two frames ahead of the smoother.
 
 The smoother (GTSAM) holds the GIL through its updates, so a thread cannot overlap the front end
-with it; a child process can. The child opens the bag itself (:class:`~dcc_fg.io.vio_bag.VioBag`),
+with it; a child process can (a fresh interpreter, ``python -m dcc_fg.vio.worker``, talking
+length-prefixed pickles over its stdin/stdout). The child opens the bag itself (:class:`~dcc_fg.io.vio_bag.VioBag`),
 decodes and tracks every frame pair (:class:`~dcc_fg.vio.frontend.Frontend`) and sends the tracks
 to the parent; the parent sends back the joint angles of each new keyframe (the front end's
 T_ds(theta) guess for the static <-> gimbal matching) and the ids of gimbal tracks to drop (the
@@ -16,8 +17,14 @@ iteration the counters and the front end's statistics. Times in ns, angles in ra
 from __future__ import annotations
 
 import logging
-import multiprocessing as mp
+import os
+import pickle
 import queue
+import struct
+import subprocess
+import sys
+import threading
+import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -84,7 +91,8 @@ class WorkerSpec:
 
 class _Tracker:
     """The front end over a frame stream: skips frames outside ``t_range``, resets after gaps,
-    applies drops and joint-angle pushes, and counts."""
+    applies drops and joint-angle pushes, and counts (``cpu_s``: the process's CPU time, s, which in
+    a child process is the front end's own)."""
 
     def __init__(self, spec: WorkerSpec) -> None:
         self.spec = spec
@@ -103,6 +111,7 @@ class _Tracker:
 
     def counters(self) -> dict[str, Any]:
         return {
+            "cpu_s": time.process_time(),
             "skipped": self.skipped,
             "resets": self.resets,
             "processed": self.processed,
@@ -133,45 +142,66 @@ def _open_bag(spec: WorkerSpec) -> VioBag:
     return VioBag(spec.bag, spec.imu_topic, spec.static_topic, spec.dynamic_topic, tolerance_ns=spec.tolerance_ns)
 
 
-def _child_main(spec: WorkerSpec, out: Any, ctrl: Any) -> None:
-    """Child process: track every frame, send :class:`Tracked` items, obey ``ctrl`` messages."""
-    logging.disable(logging.WARNING)  # the parent has read the same bag and reported its problems
-    try:
-        tracker = _Tracker(spec)
-        bag = _open_bag(spec)
-        stop = False
+def _send(stream: Any, obj: Any) -> None:
+    """Length-prefixed pickle on a binary stream."""
+    data = pickle.dumps(obj, protocol=pickle.HIGHEST_PROTOCOL)
+    stream.write(struct.pack("<Q", len(data)))
+    stream.write(data)
+    stream.flush()
 
-        def apply_control(block: bool = False) -> bool:
+
+def _recv(stream: Any) -> Any:
+    """The next length-prefixed pickle (EOFError at the end of the stream)."""
+    head = stream.read(8)
+    if len(head) < 8:
+        raise EOFError
+    (n,) = struct.unpack("<Q", head)
+    data = stream.read(n)
+    if len(data) < n:
+        raise EOFError
+    return pickle.loads(data)
+
+
+def child_main() -> None:
+    """Entry of the front-end process (``python -m dcc_fg.vio.worker``): the spec, then control
+    messages on stdin; :class:`Tracked` items and a final ``("end", counters)`` on stdout."""
+    logging.disable(logging.WARNING)  # the parent has read the same bag and reported its problems
+    import cv2
+
+    cv2.setNumThreads(1)  # one core for the front end, the other for the smoother
+    inp, out = sys.stdin.buffer, sys.stdout.buffer
+    sys.stdout = sys.stderr  # nothing else may write to the data stream
+    try:
+        spec: WorkerSpec = _recv(inp)
+        ctrl: queue.Queue[Any] = queue.Queue()
+
+        def read_control() -> None:
+            try:
+                while True:
+                    ctrl.put(_recv(inp))
+            except EOFError:
+                ctrl.put(("stop",))
+
+        threading.Thread(target=read_control, daemon=True).start()
+        tracker = _Tracker(spec)
+        for item in tracker.frames(_open_bag(spec)):
             while True:
                 try:
-                    msg = ctrl.get(block=block, timeout=0.1) if block else ctrl.get_nowait()
+                    msg = ctrl.get_nowait()
                 except queue.Empty:
-                    return False
+                    break
                 if msg[0] == "stop":
-                    return True
+                    return
                 if msg[0] == "theta":
                     tracker.thetas.push(msg[1], msg[2])
                 elif msg[0] == "drop":
                     tracker.frontend.drop_dynamic(msg[1])
-                block = False
-
-        for item in tracker.frames(bag):
-            if apply_control():
-                stop = True
-                break
-            while True:  # bounded queue: wait for the smoother, but keep obeying control messages
-                try:
-                    out.put(item, timeout=0.1)
-                    break
-                except queue.Full:
-                    if apply_control():
-                        stop = True
-                        break
-            if stop:
-                break
-        out.put(("end", tracker.counters()))
+            _send(out, item)  # blocks while the pipe is full: the smoother sets the pace
+        _send(out, ("end", tracker.counters()))
+    except BrokenPipeError:  # the parent stopped reading
+        return
     except BaseException as exc:  # reported to the parent, which raises it
-        out.put(("error", type(exc).__name__, str(exc)))
+        _send(out, ("error", type(exc).__name__, str(exc)))
 
 
 class FrontendWorker:
@@ -182,25 +212,34 @@ class FrontendWorker:
             raise ValueError(f"front-end worker mode '{mode}' is not one of {', '.join(MODES)}")
         self.spec, self.mode = spec, mode
         self.counters: dict[str, Any] = {}
-        self._tracker: _Tracker | None = None
-        self._proc: Any = None
-        if mode == "process":
-            # fork: no re-import of the caller's main module (spawn would need an ``if __name__ ==
-            # "__main__"`` guard in every user script); the child is forked before the smoother has
-            # run, so no GTSAM or OpenCV worker threads exist to be inherited
-            ctx = mp.get_context("fork" if "fork" in mp.get_all_start_methods() else "spawn")
-            self._out = ctx.Queue(maxsize=3)
-            self._ctrl = ctx.Queue()
-            self._proc = ctx.Process(target=_child_main, args=(spec, self._out, self._ctrl), daemon=True)
-        else:
-            self._tracker = _Tracker(spec)
+        self._tracker: _Tracker | None = _Tracker(spec) if mode == "inline" else None
+        self._proc: subprocess.Popen[bytes] | None = None
+
+    def _start(self) -> subprocess.Popen[bytes]:
+        # a fresh interpreter: no fork of a process that may hold GTSAM/OpenCV worker threads, and
+        # no re-import of the caller's main module (multiprocessing's spawn would need a guard)
+        env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in sys.path if p))
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "dcc_fg.vio.worker"], stdin=subprocess.PIPE, stdout=subprocess.PIPE, env=env
+        )
+        assert proc.stdin is not None
+        _send(proc.stdin, self.spec)
+        return proc
+
+    def _control(self, msg: tuple[Any, ...]) -> None:
+        if self._proc is None or self._proc.stdin is None:
+            return
+        try:
+            _send(self._proc.stdin, msg)
+        except (BrokenPipeError, ValueError):  # the child has ended
+            pass
 
     def push_theta(self, t_ns: int, theta: FloatArray) -> None:
         """The smoother's joint angles at keyframe time ``t_ns`` (rad)."""
         if self._tracker is not None:
             self._tracker.thetas.push(t_ns, theta)
         else:
-            self._ctrl.put(("theta", int(t_ns), np.asarray(theta, float)))
+            self._control(("theta", int(t_ns), np.asarray(theta, float)))
 
     def drop(self, ids: IntArray) -> None:
         """Stop tracking these gimbal-camera track ids."""
@@ -209,23 +248,23 @@ class FrontendWorker:
         if self._tracker is not None:
             self._tracker.frontend.drop_dynamic(np.asarray(ids, np.int64))
         else:
-            self._ctrl.put(("drop", np.asarray(ids, np.int64)))
+            self._control(("drop", np.asarray(ids, np.int64)))
 
     def __iter__(self) -> Iterator[Tracked]:
         if self._tracker is not None:
             yield from self._tracker.frames(_open_bag(self.spec))
             self.counters = self._tracker.counters()
             return
-        self._proc.start()
+        self._proc = proc = self._start()
+        assert proc.stdout is not None
         while True:
             try:
-                item = self._out.get(timeout=1.0)
-            except queue.Empty:
-                if not self._proc.is_alive():
-                    raise RuntimeError(
-                        f"the front-end process for {self.spec.bag} died (exit code {self._proc.exitcode})"
-                    ) from None
-                continue
+                item = _recv(proc.stdout)
+            except EOFError:
+                code = proc.wait()
+                raise RuntimeError(
+                    f"the front-end process for {self.spec.bag} ended early (exit code {code})"
+                ) from None
             if isinstance(item, tuple):
                 if item[0] == "error":
                     kind = {"ValueError": ValueError, "FileNotFoundError": FileNotFoundError}.get(item[1], RuntimeError)
@@ -238,14 +277,24 @@ class FrontendWorker:
 
     def close(self) -> None:
         """Stop the child process (if any) and wait for it."""
-        if self._proc is None or self._proc.pid is None:
+        proc = self._proc
+        if proc is None:
             return
-        if self._proc.is_alive():
-            self._ctrl.put(("stop",))
-            while self._proc.is_alive():  # unblock a child waiting on a full queue
+        for stream in (proc.stdin, proc.stdout):
+            if stream is not None:
                 try:
-                    self._out.get(timeout=0.1)
-                except queue.Empty:
+                    stream.close()
+                except OSError:
                     pass
-                self._proc.join(timeout=0.1)
-        self._proc.join()
+        try:
+            proc.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+
+
+if __name__ == "__main__":
+    # run the importable module's copy, so pickled objects name dcc_fg.vio.worker, not __main__
+    from dcc_fg.vio.worker import child_main as _main
+
+    _main()
