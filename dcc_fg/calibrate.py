@@ -56,6 +56,7 @@ FloatArray = NDArray[np.float64]
 MODES = ("encoderless", "encoders", "validate")
 FORMULATIONS = ("bundle", "two_way")
 KIN_KEY = gtsam.symbol("k", 0)
+COVARIANCE_CHUNK = 200  # snapshots per joint-marginal call (dense block: (nk + 200 L)^2 doubles)
 MIN_ROTATION_SPREAD_RAD = np.deg2rad(0.5)  # joint motion check (see check_joint_motion)
 GAUGE_SIGMA = 1e-6  # rad, prior on the mean of theta_L (a pure gauge direction: it costs nothing)
 
@@ -520,27 +521,36 @@ def calibrate(
             cov = marginals.marginalCovariance(kin_key) * variance_factor
             kin_std[~fixed] = np.sqrt(np.diag(cov))
         kin_std[~observable] = np.nan
-        if estimate_theta:
-            for i in range(K):
-                theta_std[i] = np.sqrt(np.diag(marginals.marginalCovariance(theta_key(i))) * variance_factor)
         T_ds_cov = np.zeros((K, 6, 6))
-        for i in range(K):
-            Jk, Jt = chain.d_T_ds_tangent(kin, thetas[i], L)
-            keys, blocks_J = [], []
-            if kin_key is not None:
-                keys.append(kin_key)
-                blocks_J.append(Jk[:, ~fixed])
-            if estimate_theta:
-                keys.append(theta_key(i))
-                blocks_J.append(Jt)
+        # One joint marginal per chunk of snapshots instead of two per snapshot: each GTSAM
+        # marginal call costs about as much as a joint one over many keys (the mean prior on the
+        # joint angles puts them all in one clique), so per-snapshot calls made this O(K^2)
+        # (~70 s of covariances at K = 300, hours at K = 2,000). Chunks bound the dense block.
+        for start in range(0, K, COVARIANCE_CHUNK):
+            chunk = range(start, min(K, start + COVARIANCE_CHUNK))
+            keys = ([kin_key] if kin_key is not None else []) + (
+                [theta_key(i) for i in chunk] if estimate_theta else []
+            )
             if not keys:
-                continue
+                break
             kv = gtsam.KeyVector()
             for k in keys:
                 kv.append(k)
-            C = marginals.jointMarginalCovariance(kv).fullMatrix() * variance_factor
-            Jf = np.concatenate(blocks_J, axis=1)
-            T_ds_cov[i] = Jf @ C @ Jf.T
+            joint = marginals.jointMarginalCovariance(kv)
+            for i in chunk:
+                Jk, Jt = chain.d_T_ds_tangent(kin, thetas[i], L)
+                keys_i, blocks_J = [], []
+                if kin_key is not None:
+                    keys_i.append(kin_key)
+                    blocks_J.append(Jk[:, ~fixed])
+                if estimate_theta:
+                    keys_i.append(theta_key(i))
+                    blocks_J.append(Jt)
+                C = np.block([[joint.at(a, b) for b in keys_i] for a in keys_i]) * variance_factor
+                if estimate_theta:
+                    theta_std[i] = np.sqrt(np.diag(joint.at(theta_key(i), theta_key(i))) * variance_factor)
+                Jf = np.concatenate(blocks_J, axis=1)
+                T_ds_cov[i] = Jf @ C @ Jf.T
     elif opt.mode == "validate":
         kin_std = initial.kin_std if initial.kin_std is not None else kin_std
 
