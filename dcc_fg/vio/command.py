@@ -133,6 +133,7 @@ def run_vio_command(args: argparse.Namespace) -> int:
     pipeline = PipelineOptions(
         reject_dynamic=not args.no_dynamic_rejection,
         tolerance_ns=int(round(args.sync_tolerance * 1e6)),
+        worker=args.frontend,
     )
     bar = None
     show = not args.quiet and sys.stderr.isatty()
@@ -218,6 +219,13 @@ def add_vio_parser(sub: Any) -> None:
         "--no-dynamic-rejection",
         action="store_true",
         help="keep every gimbal-camera track (skip the second stage of the two-stage outlier handling)",
+    )
+    v.add_argument(
+        "--frontend",
+        default="inline",
+        choices=["inline", "process"],
+        help="run the feature tracking inline (default) or in a second process on another core; "
+        "benchmarks/bench_vio.py measures which is faster on your machine",
     )
     v.add_argument("--out", required=True, help="output folder")
     v.add_argument("--quiet", action="store_true", help="no progress bar")

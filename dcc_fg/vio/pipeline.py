@@ -13,9 +13,9 @@ implied by the *updated* extrinsics T_ds(theta_prev), T_ds(theta_cur) and the st
 motion seen by its own tracks are rejected (:meth:`Frontend.dynamic_outliers`): the front end stops
 tracking them and the smoother's gate drops their observations from the current keyframe.
 
-By default the front end runs in a child process one or two frames ahead of the smoother, on the
-second core (:mod:`dcc_fg.vio.worker`; GTSAM holds the GIL, so a thread would not overlap); it
-tracks each frame with the joint angles extrapolated linearly from the last two keyframe estimates
+The front end runs inline or, optionally, in a child process one or two frames ahead of the
+smoother, on the second core (:mod:`dcc_fg.vio.worker`; GTSAM holds the GIL, so a thread would
+not overlap); it tracks each frame with the joint angles extrapolated linearly from the last two keyframe estimates
 (the gimbal moves at up to ~60 deg/s: one 20 Hz frame is 3 deg), which only the static <-> gimbal
 matching uses.
 
@@ -65,12 +65,13 @@ class PipelineOptions:
     parameters (default: :meth:`FrontendConfig.for_resolution` of the static camera);
     ``fit_initial_joints`` (``dcc``) starts the joint angles from the first frame's static <-> gimbal
     matches (:func:`~dcc_fg.vio.joint_init.fit_joint_angles`) instead of taking the guess as is;
-    ``worker`` runs the front end in a child ``process`` one or two frames ahead of the smoother
-    (on a second core) or ``inline`` (:mod:`dcc_fg.vio.worker`)."""
+    ``worker`` runs the front end ``inline`` (default) or in a child ``process`` one or two frames
+    ahead of the smoother, on the second core (:mod:`dcc_fg.vio.worker`; see
+    ``benchmarks/bench_vio.py`` for which is faster on a given machine)."""
 
     reject_dynamic: bool = True
     fit_initial_joints: bool = True
-    worker: str = "process"
+    worker: str = "inline"
     tolerance_ns: int = 5_000_000
     frontend: FrontendConfig | None = None
 

@@ -207,7 +207,7 @@ def child_main() -> None:
 class FrontendWorker:
     """The front end over a bag's frames, ``inline`` or in a child ``process`` (module docstring)."""
 
-    def __init__(self, spec: WorkerSpec, mode: str = "process") -> None:
+    def __init__(self, spec: WorkerSpec, mode: str = "inline") -> None:
         if mode not in MODES:
             raise ValueError(f"front-end worker mode '{mode}' is not one of {', '.join(MODES)}")
         self.spec, self.mode = spec, mode
@@ -298,3 +298,5 @@ if __name__ == "__main__":
     from dcc_fg.vio.worker import child_main as _main
 
     _main()
+    sys.stderr.flush()
+    os._exit(0)  # no interpreter shutdown while the control thread still blocks on stdin
