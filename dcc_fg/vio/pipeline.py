@@ -225,13 +225,19 @@ def run_vio_bag(
     return result, run
 
 
+def _shared_pairs(frame: TrackFrame) -> tuple[FloatArray, FloatArray]:
+    """Normalized coordinates (N, 2) in s and in d of the tracks both cameras see in ``frame``."""
+    _, i_s, i_d = np.intersect1d(frame.static_ids, frame.dynamic_ids, return_indices=True)
+    return frame.static_xy[i_s], frame.dynamic_xy[i_d]
+
+
 def _initial_joint_angles(cal: GimbalCalibration, frame: TrackFrame, guess: FloatArray | None, fit: bool) -> JointFit:
     """Joint angles at the first frame: fitted to its static <-> gimbal pairs (starting from
     ``guess``, or from a grid without one); the guess itself when fitting is off or impossible."""
-    common, i_s, i_d = np.intersect1d(frame.static_ids, frame.dynamic_ids, return_indices=True)
+    xy_s, xy_d = _shared_pairs(frame)
     L = cal.n_joints
-    if fit and common.size >= 2 * L + 2:
-        result = fit_joint_angles(cal, frame.static_xy[i_s], frame.dynamic_xy[i_d], guess)
+    if fit and len(xy_s) >= 2 * L + 2:
+        result = fit_joint_angles(cal, xy_s, xy_d, guess)
         if result.inliers >= max(2 * L + 2, result.pairs // 2):
             log.info(
                 "initial joint angles %s rad from %d of %d static/gimbal pairs",
@@ -243,10 +249,10 @@ def _initial_joint_angles(cal: GimbalCalibration, frame: TrackFrame, guess: Floa
         log.warning("initial joint-angle fit: only %d of %d pairs agree", result.inliers, result.pairs)
     if guess is None:
         raise ValueError(
-            f"dcc mode: the first frame has {common.size} static/gimbal matches, too few to find the joint angles; "
+            f"dcc mode: the first frame has {len(xy_s)} static/gimbal matches, too few to find the joint angles; "
             "give a starting guess (--initial-joints, rad)"
         )
-    return JointFit(np.asarray(guess, float), float("nan"), 0, int(common.size))
+    return JointFit(np.asarray(guess, float), float("nan"), 0, len(xy_s))
 
 
 def _theta_measurement(
@@ -257,13 +263,12 @@ def _theta_measurement(
     covariance."""
     if smoother.opt.mode != "dcc" or kf_prev is None or not smoother.next_is_keyframe():
         return None
-    theta_pred = kf_prev[1]
     if smoother.gimbal_landmarks(frame) >= smoother.opt.min_gimbal_landmarks:
         return None
-    common, i_s, i_d = np.intersect1d(frame.static_ids, frame.dynamic_ids, return_indices=True)
-    if common.size < max(8, 2 * cal.n_joints + 2):
+    xy_s, xy_d = _shared_pairs(frame)
+    if len(xy_s) < max(8, 2 * cal.n_joints + 2):
         return None
-    fit = fit_joint_angles(cal, frame.static_xy[i_s], frame.dynamic_xy[i_d], theta_pred, grid=0)
+    fit = fit_joint_angles(cal, xy_s, xy_d, kf_prev[1], grid=0)
     if fit.covariance is None or fit.inliers < max(8, fit.pairs // 2):
         return None
     return fit.theta, fit.covariance
