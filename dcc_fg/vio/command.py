@@ -222,10 +222,11 @@ def add_vio_parser(sub: Any) -> None:
     )
     v.add_argument(
         "--frontend",
-        default="inline",
-        choices=["inline", "process"],
-        help="run the feature tracking inline (default) or in a second process on another core; "
-        "benchmarks/bench_vio.py measures which is faster on your machine",
+        default="auto",
+        choices=["auto", "inline", "process"],
+        help="run the feature tracking inline, or in a second process on another core so it overlaps "
+        "the smoother; auto (default) takes the second process when two or more cores are usable. "
+        "benchmarks/bench_vio.py measures both on your machine",
     )
     v.add_argument("--out", required=True, help="output folder")
     v.add_argument("--quiet", action="store_true", help="no progress bar")

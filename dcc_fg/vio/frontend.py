@@ -170,6 +170,44 @@ class DynamicSnapshot:
         return self.motion
 
 
+def gimbal_outliers(snap: DynamicSnapshot, hint: GimbalHint, camera: CameraModel, config: FrontendConfig) -> BoolArray:
+    """Mask over the gimbal tracks of ``snap`` that are inconsistent with the extrinsics of ``hint``.
+
+    With the extrinsics of the previous and the current frame, the gimbal camera's motion is
+    ``T_{d1 d0} = T_ds(theta_1) T_{s1 s0} T_ds(theta_0)^-1``; tracks whose Sampson error
+    under that motion exceeds ``config.dynamic_threshold`` pixels (``camera``'s mean focal length)
+    are outliers (a motion with no translation uses the rotation-only prediction and
+    ``config.dynamic_rotation_threshold``). Without ``hint.T_s_cur_prev`` the static rotation and
+    translation direction estimated from the static tracks are used (the lever arm of the gimbal is
+    then neglected); without those (too little parallax) the static camera is taken as not moving.
+    Tracks born in this frame are never outliers.
+    """
+    bad = np.zeros(snap.ids.shape[0], dtype=bool)
+    both = np.isfinite(snap.prev_xy[:, 0])
+    if not np.any(both):
+        return bad
+    T0, T1 = np.asarray(hint.T_ds_prev, float), np.asarray(hint.T_ds_cur, float)
+    if hint.T_s_cur_prev is not None:
+        T_d = T1 @ np.asarray(hint.T_s_cur_prev, float) @ inv_se3(T0)
+        R_d, t_d = T_d[:3, :3], T_d[:3, 3]
+    else:
+        motion = snap.static_motion()
+        R_s, t_s = motion if motion is not None else (np.eye(3), np.zeros(3))
+        R_d = T1[:3, :3] @ R_s @ T0[:3, :3].T
+        t_d = T1[:3, :3] @ t_s
+    x0, x1 = snap.prev_xy[both], snap.xy[both]
+    f = float(np.mean(camera.intrinsics[:2]))
+    if np.linalg.norm(t_d) > 1e-6:
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = R_d, t_d
+        out = sampson_distance(essential(T), x0, x1) * f > config.dynamic_threshold
+    else:
+        pred, front = rotation_prediction(R_d, x0)
+        out = ~front | (np.linalg.norm(pred - x1, axis=1) * f > config.dynamic_rotation_threshold)
+    bad[np.flatnonzero(both)[out]] = True
+    return bad
+
+
 @dataclass
 class FrontendStats:
     """Counters and per-frame timings in milliseconds: wall-clock per stage, and the process CPU
@@ -478,45 +516,12 @@ class Frontend:
         return removed
 
     def dynamic_outliers(self, hint: GimbalHint, snapshot: DynamicSnapshot | None = None) -> BoolArray:
-        """Gimbal tracks inconsistent with the extrinsics of ``hint`` (mask over the current tracks,
-        or over the tracks of ``snapshot``, a frame's state taken with :meth:`dynamic_snapshot`).
-
-        With the extrinsics of the previous and the current frame, the gimbal camera's motion is
-        ``T_{d1 d0} = T_ds(theta_1) T_{s1 s0} T_ds(theta_0)^-1``; tracks whose Sampson error
-        under that motion exceeds ``dynamic_threshold`` pixels are outliers (a motion with no
-        translation uses the rotation-only prediction and ``dynamic_rotation_threshold``).
-        Without ``hint.T_s_cur_prev`` the static rotation and translation direction estimated
-        from the static tracks are used (the lever arm of the gimbal is then neglected); without
-        those (too little parallax) the static camera is taken as not moving.  Tracks born in
-        this frame are never outliers.
-        """
+        """Gimbal tracks inconsistent with the extrinsics of ``hint``: :func:`gimbal_outliers` over
+        the current tracks, or over the tracks of ``snapshot`` (taken with :meth:`dynamic_snapshot`)."""
         if self.dynamic is None:
             return np.zeros(0, dtype=bool)
         snap = snapshot if snapshot is not None else self.dynamic_snapshot()
-        bad = np.zeros(snap.ids.shape[0], dtype=bool)
-        both = np.isfinite(snap.prev_xy[:, 0])
-        if not np.any(both):
-            return bad
-        T0, T1 = np.asarray(hint.T_ds_prev, float), np.asarray(hint.T_ds_cur, float)
-        if hint.T_s_cur_prev is not None:
-            T_d = T1 @ np.asarray(hint.T_s_cur_prev, float) @ inv_se3(T0)
-            R_d, t_d = T_d[:3, :3], T_d[:3, 3]
-        else:
-            motion = snap.static_motion()
-            R_s, t_s = motion if motion is not None else (np.eye(3), np.zeros(3))
-            R_d = T1[:3, :3] @ R_s @ T0[:3, :3].T
-            t_d = T1[:3, :3] @ t_s
-        x0, x1 = snap.prev_xy[both], snap.xy[both]
-        f = float(np.mean(self.dynamic.camera.intrinsics[:2]))
-        if np.linalg.norm(t_d) > 1e-6:
-            T = np.eye(4)
-            T[:3, :3], T[:3, 3] = R_d, t_d
-            out = sampson_distance(essential(T), x0, x1) * f > self.config.dynamic_threshold
-        else:
-            pred, front = rotation_prediction(R_d, x0)
-            out = ~front | (np.linalg.norm(pred - x1, axis=1) * f > self.config.dynamic_rotation_threshold)
-        bad[np.flatnonzero(both)[out]] = True
-        return bad
+        return gimbal_outliers(snap, hint, self.dynamic.camera, self.config)
 
     def dynamic_snapshot(self) -> DynamicSnapshot:
         """The gimbal tracks of the current frame and the static camera's two-view geometry, for a

@@ -39,10 +39,10 @@ from numpy.typing import NDArray
 from dcc_fg.io.vio_bag import VioBag
 from dcc_fg.model import GimbalCalibration
 from dcc_fg.vio.backend import NS, InitialState, VioOptions, VioResult, VioSmoother
-from dcc_fg.vio.frontend import Frontend, FrontendConfig, GimbalHint
+from dcc_fg.vio.frontend import FrontendConfig, GimbalHint, gimbal_outliers
 from dcc_fg.vio.joint_init import JointFit, fit_joint_angles
 from dcc_fg.vio.types import ImuConfig, TrackFrame
-from dcc_fg.vio.worker import FrontendWorker, WorkerSpec
+from dcc_fg.vio.worker import FrontendWorker, WorkerSpec, resolve_mode
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -65,13 +65,14 @@ class PipelineOptions:
     parameters (default: :meth:`FrontendConfig.for_resolution` of the static camera);
     ``fit_initial_joints`` (``dcc``) starts the joint angles from the first frame's static <-> gimbal
     matches (:func:`~dcc_fg.vio.joint_init.fit_joint_angles`) instead of taking the guess as is;
-    ``worker`` runs the front end ``inline`` (default) or in a child ``process`` one or two frames
-    ahead of the smoother, on the second core (:mod:`dcc_fg.vio.worker`; see
-    ``benchmarks/bench_vio.py`` for which is faster on a given machine)."""
+    ``worker`` runs the front end ``inline`` or in a child ``process`` one or two frames ahead of
+    the smoother, on a second core (:mod:`dcc_fg.vio.worker`); ``auto`` (default) picks ``process``
+    when this process may use at least two cores (see :func:`~dcc_fg.vio.worker.resolve_mode`;
+    ``benchmarks/bench_vio.py`` measures both on a given machine)."""
 
     reject_dynamic: bool = True
     fit_initial_joints: bool = True
-    worker: str = "inline"
+    worker: str = "auto"
     tolerance_ns: int = 5_000_000
     frontend: FrontendConfig | None = None
 
@@ -138,9 +139,10 @@ def run_vio_bag(
         (t_min, t_last),
         snapshots=options.mode == "dcc" and pipeline.reject_dynamic,
     )
-    worker = FrontendWorker(spec, pipeline.worker)
-    # the outlier test of stage two runs here, on the worker's snapshots
-    rejector = None if mono else Frontend(calibration.static_camera, calibration.dynamic_camera, pipeline.frontend)
+    worker_mode = resolve_mode(pipeline.worker)
+    worker = FrontendWorker(spec, worker_mode)
+    # the outlier test of stage two runs here, on the worker's snapshots, with the worker's settings
+    fe_config = pipeline.frontend or FrontendConfig.for_resolution(*calibration.static_camera.resolution)
     smoother: VioSmoother | None = None
     joint_fit: JointFit | None = None
     n_total = len(vb)
@@ -178,8 +180,8 @@ def run_vio_bag(
                     t_k0, theta_k0 = kf_prev
                     w = (t_prev - t_k0) / max(t - t_k0, 1)
                     hint = GimbalHint(calibration.T_ds(theta_k0 + w * (theta_k - theta_k0)), calibration.T_ds(theta_k))
-                    assert rejector is not None
-                    bad = rejector.dynamic_outliers(hint, item.snapshot)
+                    assert calibration.dynamic_camera is not None
+                    bad = gimbal_outliers(item.snapshot, hint, calibration.dynamic_camera, fe_config)
                     worker.drop(item.snapshot.ids[bad])
                 kf_prev = (t, theta_k)
             t_prev = t
@@ -209,8 +211,8 @@ def run_vio_bag(
         "imu_gaps": len(vb.imu_gaps),
         "imu_samples_dropped": vb.imu_check.non_finite + vb.imu_check.out_of_order,
         "frontend_resets": worker.counters["resets"],
-        "frontend_worker": pipeline.worker,
-        "frontend_process_cpu_s": worker.counters["cpu_s"] if pipeline.worker == "process" else None,
+        "frontend_worker": worker_mode,
+        "frontend_process_cpu_s": worker.counters["cpu_s"] if worker_mode == "process" else None,
         "initial_joint_angles": None
         if joint_fit is None
         else {
