@@ -11,6 +11,8 @@ import cv2
 import gtsam
 import numpy as np
 from numpy.typing import NDArray
+from scipy import sparse
+from scipy.sparse.linalg import splu
 
 from factors import chain
 from factors.camera import CameraModel
@@ -81,23 +83,54 @@ def pose_level_refine(
         th = x[nf:].reshape(K, L) if estimate_theta else thetas0
         return kin, th
 
-    def residual(x: FloatArray, jac: bool) -> tuple[FloatArray, FloatArray | None]:
+    # Jacobian sparsity: each snapshot's 6 rows touch the free kinematic entries and its own L joint
+    # angles; the gauge rows (G) touch every angle of one joint. J is stored sparse without G, and
+    # G enters the normal equations by the Woodbury identity, so memory stays linear in K.
+    rows_s = np.repeat(np.arange(6 * K), nf + (L if estimate_theta else 0))
+    cols_s = (
+        np.concatenate(
+            [
+                np.tile(np.concatenate([np.arange(nf), nf + i * L + np.arange(L if estimate_theta else 0)]), 6)
+                for i in range(K)
+            ]
+        )
+        if K
+        else np.zeros(0, dtype=np.int64)
+    )
+    G = np.zeros((len(offset_joints) if estimate_theta else 0, nf + nt))
+    for row, j in enumerate(offset_joints if estimate_theta else []):
+        G[row, nf + j : nf + nt : L] = 1e3 / K
+
+    def residual(x: FloatArray, jac: bool) -> tuple[FloatArray, sparse.csr_matrix | None]:
         kin, th = unpack(x)
-        r = np.zeros(6 * K + (len(offset_joints) if estimate_theta else 0))
-        J = np.zeros((r.size, nf + nt)) if jac else None
+        r = np.zeros(6 * K + G.shape[0])
+        blocks = np.zeros((K, 6, nf + (L if estimate_theta else 0))) if jac else None
         for i in range(K):
             r[6 * i : 6 * i + 6] = w * meas[i].localCoordinates(gtsam.Pose3(chain.T_ds(kin, th[i], L)))
-            if J is not None:
+            if blocks is not None:
                 Jk, Jt = chain.d_T_ds_tangent(kin, th[i], L)
-                J[6 * i : 6 * i + 6, :nf] = w[:, None] * Jk[:, free_idx]
+                blocks[i, :, :nf] = w[:, None] * Jk[:, free_idx]
                 if estimate_theta:
-                    J[6 * i : 6 * i + 6, nf + i * L : nf + (i + 1) * L] = w[:, None] * Jt
-        if estimate_theta:
-            for row, j in enumerate(offset_joints):
-                r[6 * K + row] = 1e3 * (th[:, j].mean() - mean0[j])
-                if J is not None:
-                    J[6 * K + row, nf + j : nf + nt : L] = 1e3 / K
-        return r, J
+                    blocks[i, :, nf:] = w[:, None] * Jt
+        for row, j in enumerate(offset_joints if estimate_theta else []):
+            r[6 * K + row] = 1e3 * (th[:, j].mean() - mean0[j])
+        if blocks is None:
+            return r, None
+        return r, sparse.csr_matrix((blocks.ravel(), (rows_s, cols_s)), shape=(6 * K, nf + nt))
+
+    def lm_step(J: sparse.csr_matrix, r: FloatArray, lam: float) -> FloatArray:
+        """Solve (J^T J + G^T G + lam diag) dx = -(J^T r_s + G^T r_g) (Woodbury for G)."""
+        B = (J.T @ J).tocsc()
+        diag = B.diagonal() + np.sum(G * G, axis=0)
+        B = B + sparse.diags(lam * (diag + 1e-12), format="csc")
+        g = J.T @ r[: 6 * K] + G.T @ r[6 * K :]
+        lu = splu(B)
+        Bg = lu.solve(-g)
+        if G.shape[0] == 0:
+            return Bg
+        BGt = lu.solve(np.ascontiguousarray(G.T))
+        S = np.eye(G.shape[0]) + G @ BGt
+        return Bg - BGt @ np.linalg.solve(S, G @ Bg)
 
     x = np.concatenate([kin0[free_idx], thetas0.ravel() if estimate_theta else np.zeros(0)])
     r, J = residual(x, True)
@@ -105,9 +138,7 @@ def pose_level_refine(
     lam = 1e-3
     for _ in range(max_iterations):
         assert J is not None
-        A = J.T @ J
-        g = J.T @ r
-        step = np.linalg.solve(A + lam * np.diag(np.diag(A) + 1e-12), -g)
+        step = lm_step(J, r, lam)
         r_new, _ = residual(x + step, False)
         cost_new = float(r_new @ r_new)
         if cost_new < cost:
