@@ -4,27 +4,55 @@ What is measured
 ----------------
 1. A calibration bag of ``--frames`` image pairs (default 2,000) is written with
    :func:`dcc_fg.io.bags.write_ros2_bag` / :func:`write_ros1_bag` from a generator (one pair in
-   memory at a time): 640x480 ``mono8`` images of a 9x6 chessboard (0.025 m squares) rendered for
-   two undistorted pinhole cameras 0.1 m apart (a zero-joint cluster, L = 0) at random board
-   poses (0.45-0.9 m, tilts up to 30 degrees, fully visible in both), by one perspective warp of a
-   pre-rendered board texture plus a 3x3 blur.  Uncompressed images: the bag on disk is about
-   ``frames * 2 * 307 kB`` (1.2 GB for 2,000 frames).
-2. Each workload runs in a fresh Python process (so its peak resident set size is its own) and
-   reports ``resource.getrusage(RUSAGE_SELF).ru_maxrss``:
+   memory at a time), 640x480 ``mono8`` images, uncompressed: the bag on disk is about
+   ``frames * 2 * 307 kB`` (1.2 GB for 2,000 frames).  Two scenes (``--joints``):
+
+   * ``--joints 0`` (default): a zero-joint cluster (L = 0), two undistorted pinhole cameras
+     0.1 m apart, a 9x6 chessboard (0.025 m squares) at random board poses (0.45-0.9 m, tilts up
+     to 30 degrees, fully visible in both), rendered by one perspective warp of a pre-rendered
+     board texture plus a 3x3 blur; an L = 0 gimbal.yaml is given.  The weakest case.
+   * ``--joints L`` (L = 1, 2, 3; measured: 2): a gimbal cluster, rendered by the project's
+     simulator, i.e. :func:`dcc_fg.sim.write_dataset.write_calibration_dataset` (the
+     ``dcc-fg simulate calibration`` machinery) with ``--frames`` snapshots: the pinned
+     mechanism of :mod:`dcc_fg.sim.calibration_scene` (``true_kinematics(L)``, cameras
+     ``default_cameras()`` with radial-tangential distortion, joint angles on a jittered grid over
+     ``joint_ranges(L)``, the board 0.6-1.2 m away and fully visible in both cameras), a 10x7
+     chessboard of 0.06 m squares rendered through the distorted cameras
+     (:func:`dcc_fg.sim.render.render_view`: 2x2 supersampling, 0.6 px blur, 2 grey levels of
+     noise), plus ``ground_truth.yaml``.  No gimbal.yaml is used: the calibration starts from
+     automatic initialization (``--joints L``).  Rendering costs ~0.15 s per image, so writing
+     2,000 pairs takes ~10 minutes.
+2. Each workload runs in a fresh Python process and reports its peak resident set size
+   ``peak_rss_bytes``, read as soon as the workload returns: ``VmHWM`` of ``/proc/self/status``,
+   the high-water mark of the process's own address space.  ``ru_maxrss_bytes``
+   (``resource.getrusage(RUSAGE_SELF).ru_maxrss``) is reported too, but on Linux it carries over
+   the peak RSS of the process that spawned the child (``parent_peak_rss_bytes``; the rendering
+   parent of ``--joints L`` peaks near 400 MB), so it is only the workload's own peak when that is
+   larger (as in the ``--joints 0`` runs):
 
    * ``baseline``: the imports only (numpy, OpenCV, GTSAM, rosbags, dcc_fg): the fixed cost;
    * ``load``: :func:`dcc_fg.io.dataset.load_dataset` on the bag: the streaming reader
      (:class:`~dcc_fg.io.bags.BagImagePairs`) and chessboard detection of every image;
-   * ``calibrate``: the whole ``dcc-fg calibrate BAG --camchain --target --gimbal --out`` command
-     (L = 0 gimbal.yaml): reading, detection, the calibration graph over all snapshots with
-     covariances, and the output files.  Its T_ds is compared with the rendering's ground truth.
+   * ``calibrate``: the whole ``dcc-fg calibrate BAG --camchain C --target T --out OUT`` command
+     with ``--gimbal gimbal.yaml`` (L = 0) or ``--joints L`` (automatic initialization): reading,
+     detection, initialization, the calibration graph over all snapshots with covariances, and
+     the output files.
+
+   ``time_s`` is the workload's time inside its process, ``wall_s`` the whole child process
+   (interpreter start and imports included).
+3. The calibration is compared with the rendering's ground truth on the gauge-invariant
+   per-snapshot ``T_ds(theta_i)`` (ARCHITECTURE.md): the rotation angle (rad) and the norm of the
+   translation part (m) of ``Log(T_ds_true^-1 T_ds_est)`` (:func:`dcc_fg.sim.evaluation.T_ds_errors`)
+   for every snapshot the calibration used (``T_ds_error``: RMS, median and max over snapshots).
+   For L = 0, T_ds is one transform (also reported in mrad / mm as before).  ``pixel_rms_per_axis``
+   is the calibration's per-axis RMS reprojection residual (the detection noise, px).
 
 Printed ratios: peak RSS / bag size on disk, and (peak - baseline) / bag size (the part that
 grows with the data).  Reading every image into memory instead would need at least the bag size.
 The target in the issue is a peak below 1 GB for 2,000 frames.  The last line of output is JSON.
 
-Run: ``python benchmarks/bench_memory.py [--frames 2000] [--format ros2|ros1] [--storage sqlite3|mcap]
-[--workdir DIR] [--keep] [--skip-calibrate]``.
+Run: ``python benchmarks/bench_memory.py [--frames 2000] [--joints 0|1|2|3] [--seed 0]
+[--format ros2|ros1] [--storage sqlite3|mcap] [--workdir DIR] [--keep] [--skip-calibrate]``.
 """
 
 from __future__ import annotations
@@ -131,9 +159,26 @@ def frames(n: int, seed: int = 0) -> Iterator[FramePair]:
         k += 1
 
 
-def write_inputs(workdir: Path, n: int, fmt: str, storage: str) -> dict[str, Any]:
-    """Write the bag, camchain.yaml, target.yaml and an L = 0 gimbal.yaml into ``workdir``."""
+def write_inputs(workdir: Path, n: int, fmt: str, storage: str, joints: int = 0, seed: int = 0) -> dict[str, Any]:
+    """Write the bag, camchain.yaml and target.yaml into ``workdir``; for ``joints = 0`` also an
+    L = 0 gimbal.yaml, for ``joints >= 1`` the rendered gimbal scene and its ``ground_truth.yaml``
+    (the simulator's perturbed gimbal.yaml is written too but not used)."""
     workdir.mkdir(parents=True, exist_ok=True)
+    if joints > 0:
+        from dcc_fg.sim.write_dataset import write_calibration_dataset
+
+        t = time.perf_counter()
+        r = write_calibration_dataset(workdir, "checkerboard", fmt, seed, n, joints, storage=storage)  # type: ignore[arg-type]
+        write_s = time.perf_counter() - t
+        bag = r.data
+        files = [bag] if bag.is_file() else [p for p in bag.rglob("*") if p.is_file()]
+        return {
+            "bag": str(bag),
+            "bag_bytes": int(sum(p.stat().st_size for p in files)),
+            "write_s": write_s,
+            "render_write_s": r.render_time_s,
+            "ground_truth": str(r.ground_truth),
+        }
     entry = {
         "camera_model": "pinhole",
         "intrinsics": list(CAMERA.intrinsics),
@@ -149,9 +194,9 @@ def write_inputs(workdir: Path, n: int, fmt: str, storage: str) -> dict[str, Any
     )
     t = time.perf_counter()
     if fmt == "ros1":
-        bag = write_ros1_bag(workdir / "calib.bag", frames(n))
+        bag = write_ros1_bag(workdir / "calib.bag", frames(n, seed))
     else:
-        bag = write_ros2_bag(workdir / "calib_ros2", frames(n), storage=storage)  # type: ignore[arg-type]
+        bag = write_ros2_bag(workdir / "calib_ros2", frames(n, seed), storage=storage)  # type: ignore[arg-type]
     files = [bag] if bag.is_file() else [p for p in bag.rglob("*") if p.is_file()]
     return {"bag": str(bag), "bag_bytes": int(sum(p.stat().st_size for p in files)), "write_s": time.perf_counter() - t}
 
@@ -159,15 +204,25 @@ def write_inputs(workdir: Path, n: int, fmt: str, storage: str) -> dict[str, Any
 # ------------------------------------------------------------------ child workloads
 
 
-def _child(mode: str, workdir: Path, bag: str) -> dict[str, Any]:
-    """Run one workload in this process; returns its peak RSS and results."""
+def calibrate_argv(workdir: Path, bag: str, joints: int) -> list[str]:
+    """The ``dcc-fg calibrate`` arguments of the calibrate workload (``--gimbal`` for L = 0,
+    automatic initialization with ``--joints L`` otherwise)."""
+    args = ["calibrate", bag, "--camchain", str(workdir / "camchain.yaml"), "--target", str(workdir / "target.yaml")]
+    if joints > 0:
+        args += ["--joints", str(joints)]
+    else:
+        args += ["--gimbal", str(workdir / "gimbal.yaml")]
+    return args + ["--out", str(workdir / "out")]
+
+
+def _child(mode: str, workdir: Path, bag: str, joints: int = 0) -> dict[str, Any]:
+    """Run one workload in this process; returns its peak RSS (read before anything else is done)."""
     import gtsam  # noqa: F401  (the baseline holds every heavy import the workloads use)
     import rosbags.highlevel  # noqa: F401
 
     import dcc_fg.calibrate  # noqa: F401
     from dcc_fg.cli import main
     from dcc_fg.io.dataset import load_dataset
-    from dcc_fg.model import load_calibration
 
     out: dict[str, Any] = {"mode": mode}
     t = time.perf_counter()
@@ -175,35 +230,100 @@ def _child(mode: str, workdir: Path, bag: str) -> dict[str, Any]:
         data = load_dataset(bag, workdir / "camchain.yaml", workdir / "target.yaml", progress=False)
         out["snapshots"] = len(data.snapshots)
     elif mode == "calibrate":
-        args = [
-            "calibrate",
-            bag,
-            "--camchain",
-            str(workdir / "camchain.yaml"),
-            "--target",
-            str(workdir / "target.yaml"),
-        ]
-        args += ["--gimbal", str(workdir / "gimbal.yaml"), "--out", str(workdir / "out")]
-        rc = main(args)
-        out["returncode"] = rc
-        if rc == 0:
-            cal = load_calibration(workdir / "out" / "calibration.yaml")
-            err = np.linalg.inv(chain.se3_from_tau(TAU_DS)) @ cal.T_ds(np.zeros(0))
-            out["T_ds_rot_err_mrad"] = float(Rotation.from_matrix(err[:3, :3]).magnitude() * 1e3)
-            out["T_ds_trans_err_mm"] = float(np.linalg.norm(err[:3, 3]) * 1e3)
-            out["snapshots"] = int(cal.statistics.get("snapshots", 0))
+        out["returncode"] = main(calibrate_argv(workdir, bag, joints))
     out["time_s"] = time.perf_counter() - t
-    out["peak_rss_bytes"] = int(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss) * 1024  # Linux: kB
+    out["peak_rss_bytes"] = peak_rss_bytes()
+    out["ru_maxrss_bytes"] = int(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss) * 1024  # Linux: kB
     return out
 
 
-def measure(mode: str, workdir: Path, bag: str) -> dict[str, Any]:
-    """Run ``_child(mode)`` in a fresh interpreter and parse its JSON line."""
+def _status_kb(field: str) -> int | None:
+    """A ``kB`` field of ``/proc/self/status`` (Linux), or None where there is none."""
+    try:
+        text = Path("/proc/self/status").read_text()
+    except OSError:
+        return None
+    for line in text.splitlines():
+        if line.startswith(field + ":"):
+            return int(line.split()[1])
+    return None
+
+
+def peak_rss_bytes() -> int:
+    """Peak resident set size of this process's own address space, bytes.
+
+    ``VmHWM`` of ``/proc/self/status``: the high-water mark of the memory map created at exec.
+    ``ru_maxrss`` is not used for this because Linux carries it over from the process that was
+    replaced at exec: a child started by :mod:`subprocess` reports at least the parent's RSS at
+    the time of the spawn (a parent holding 1 GiB makes an idle child report 1 GiB).  Where
+    ``/proc`` is missing, ``ru_maxrss`` is returned (kB on Linux).
+    """
+    hwm = _status_kb("VmHWM")
+    if hwm is None:
+        return int(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss) * 1024
+    return hwm * 1024
+
+
+def measure(mode: str, workdir: Path, bag: str, joints: int = 0) -> dict[str, Any]:
+    """Run ``_child(mode)`` in a fresh interpreter and parse its JSON line (adds ``wall_s``)."""
     cmd = [sys.executable, str(Path(__file__).resolve()), "--child", mode, "--workdir", str(workdir), "--bag", bag]
+    cmd += ["--joints", str(joints)]
+    parent_peak = _status_kb("VmHWM")
+    t = time.perf_counter()
     proc = subprocess.run(cmd, capture_output=True, text=True, check=False)
+    wall = time.perf_counter() - t
     if proc.returncode != 0:
         raise RuntimeError(f"{mode} child failed ({proc.returncode}):\n{proc.stderr[-3000:]}")
-    return json.loads(proc.stdout.strip().splitlines()[-1])
+    res = json.loads(proc.stdout.strip().splitlines()[-1])
+    res["wall_s"] = wall
+    if parent_peak is not None:
+        res["parent_peak_rss_bytes"] = parent_peak * 1024  # what the child's ru_maxrss inherits
+    return res
+
+
+def _stats(x: np.ndarray) -> dict[str, float]:
+    return {"rms": float(np.sqrt(np.mean(x**2))), "median": float(np.median(x)), "max": float(np.max(x))}
+
+
+def evaluate(workdir: Path, joints: int) -> dict[str, Any]:
+    """Compare ``workdir/out`` (calibration.yaml, joint_angles.csv, summary.json) with the truth.
+
+    Returns ``snapshots`` (used by the calibration), ``pixel_rms_per_axis`` (px), ``iterations``
+    and ``T_ds_error``: per-snapshot rotation angle (rad) and translation norm (m) of
+    ``Log(T_ds_true^-1 T_ds_est)``, each as RMS / median / max over the snapshots.
+    """
+    from dcc_fg.io.outputs import read_joint_angles_csv
+    from dcc_fg.model import load_calibration
+    from dcc_fg.sim.evaluation import T_ds_errors
+
+    out_dir = workdir / "out"
+    cal = load_calibration(out_dir / "calibration.yaml")
+    summary = json.loads((out_dir / "summary.json").read_text())
+    res: dict[str, Any] = {
+        "snapshots": int(cal.statistics.get("snapshots", 0)),
+        "pixel_rms_per_axis": float(summary["reprojection_error_px"]["all"]["rms_per_axis"]),
+        "iterations": int(summary.get("iterations", -1)),
+    }
+    if joints > 0:
+        from dcc_fg.sim.write_dataset import load_ground_truth
+
+        stamps, thetas = read_joint_angles_csv(out_dir / "joint_angles.csv")
+        gt = load_ground_truth(workdir / "ground_truth.yaml")
+        err = T_ds_errors(gt.kinematics, gt.theta_at(stamps), cal, thetas)
+        res["truth_snapshots"] = len(gt.timestamps_ns)
+    else:
+        truth = chain.se3_from_tau(TAU_DS)
+        e = np.linalg.inv(truth) @ cal.T_ds(np.zeros(0))
+        res["T_ds_rot_err_mrad"] = float(Rotation.from_matrix(e[:3, :3]).magnitude() * 1e3)
+        res["T_ds_trans_err_mm"] = float(np.linalg.norm(e[:3, 3]) * 1e3)
+        import gtsam
+
+        err = np.array([gtsam.Pose3(truth).localCoordinates(gtsam.Pose3(cal.T_ds(np.zeros(0))))])
+    res["T_ds_error"] = {
+        "rotation_rad": _stats(np.linalg.norm(err[:, :3], axis=1)),
+        "translation_m": _stats(np.linalg.norm(err[:, 3:], axis=1)),
+    }
+    return res
 
 
 def run(
@@ -214,49 +334,88 @@ def run(
     keep: bool = False,
     calibrate: bool = True,
     verbose: bool = True,
+    joints: int = 0,
+    seed: int = 0,
 ) -> dict[str, Any]:
     """Write the bag, measure the workloads, return the numbers."""
     tmp = workdir is None
     wd = Path(tempfile.mkdtemp(prefix="dcc_fg_bench_memory_")) if workdir is None else Path(workdir)
     try:
-        res: dict[str, Any] = {"frames": frames_n, "format": fmt, "storage": storage if fmt == "ros2" else "ros1"}
-        res.update(write_inputs(wd, frames_n, fmt, storage))
+        res: dict[str, Any] = {
+            "frames": frames_n,
+            "joints": joints,
+            "seed": seed,
+            "format": fmt,
+            "storage": storage if fmt == "ros2" else "ros1",
+        }
+        if verbose:
+            print(f"writing {frames_n} image pairs (L = {joints}) ...", flush=True)
+        res.update(write_inputs(wd, frames_n, fmt, storage, joints, seed))
         frame_bytes = SIZE[0] * SIZE[1]
         res["image_bytes_total"] = 2 * frames_n * frame_bytes
+        if calibrate:
+            res["calibrate_command"] = " ".join(["dcc-fg"] + calibrate_argv(wd, res["bag"], joints))
         modes = ["baseline", "load"] + (["calibrate"] if calibrate else [])
         for mode in modes:
-            res[mode] = measure(mode, wd, res["bag"])
+            if verbose:
+                print(f"running {mode} ...", flush=True)
+            res[mode] = measure(mode, wd, res["bag"], joints)
         base = res["baseline"]["peak_rss_bytes"]
         for mode in modes[1:]:
             peak = res[mode]["peak_rss_bytes"]
             res[mode]["peak_over_bag"] = peak / res["bag_bytes"]
             res[mode]["growth_bytes"] = peak - base
             res[mode]["growth_over_bag"] = (peak - base) / res["bag_bytes"]
+        if calibrate and res["calibrate"]["returncode"] == 0:
+            res["calibrate"].update(evaluate(wd, joints))
         if verbose:
-            mb = 1.0 / 2**20
-            print(f"bag: {res['bag']} ({fmt}), {frames_n} image pairs, {res['bag_bytes'] * mb:.1f} MiB on disk, ")
-            print(f"     written in {res['write_s']:.1f} s")
-            print(f"baseline (imports only): peak RSS {base * mb:.1f} MiB")
-            for mode in modes[1:]:
-                r = res[mode]
-                line = (
-                    f"{mode:>9}: peak RSS {r['peak_rss_bytes'] * mb:.1f} MiB in {r['time_s']:.1f} s; "
-                    f"peak / bag = {r['peak_over_bag']:.3f}; (peak - baseline) / bag = {r['growth_over_bag']:.4f}; "
-                    f"{r.get('snapshots', 0)} snapshots"
-                )
-                if "T_ds_rot_err_mrad" in r:
-                    line += f"; T_ds error {r['T_ds_rot_err_mrad']:.3f} mrad, {r['T_ds_trans_err_mm']:.3f} mm"
-                print(line)
-            print(json.dumps(res))
+            _print(res, modes)
         return res
     finally:
         if tmp and not keep:
             shutil.rmtree(wd, ignore_errors=True)
 
 
+def _print(res: dict[str, Any], modes: list[str]) -> None:
+    """Human-readable lines, then the JSON line."""
+    mb = 1.0 / 2**20
+    print(
+        f"bag: {res['bag']} ({res['format']}, L = {res['joints']}), {res['frames']} image pairs, "
+        f"{res['bag_bytes'] * mb:.1f} MiB on disk, written in {res['write_s']:.1f} s"
+    )
+    print(f"baseline (imports only): peak RSS {res['baseline']['peak_rss_bytes'] * mb:.1f} MiB")
+    for mode in modes[1:]:
+        r = res[mode]
+        print(
+            f"{mode:>9}: peak RSS {r['peak_rss_bytes'] * mb:.1f} MiB in {r['time_s']:.1f} s "
+            f"({r['wall_s']:.1f} s wall); "
+            f"peak / bag = {r['peak_over_bag']:.3f}; (peak - baseline) / bag = {r['growth_over_bag']:.4f}; "
+            f"{r.get('snapshots', 0)} snapshots"
+        )
+        if "T_ds_error" in r:
+            rot, tr = r["T_ds_error"]["rotation_rad"], r["T_ds_error"]["translation_m"]
+            print(
+                f"           T_ds error per snapshot: rotation RMS {rot['rms']:.3e} rad (median {rot['median']:.3e}, "
+                f"max {rot['max']:.3e}), translation RMS {tr['rms']:.3e} m (median {tr['median']:.3e}, "
+                f"max {tr['max']:.3e}); reprojection {r['pixel_rms_per_axis']:.3f} px/axis RMS"
+            )
+    if "calibrate_command" in res:
+        print(f"command: {res['calibrate_command']}")
+    print(json.dumps(res))
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--frames", type=int, default=2000, help="image pairs in the bag (default 2000)")
+    p.add_argument(
+        "--joints",
+        type=int,
+        default=0,
+        choices=[0, 1, 2, 3],
+        help="0: rigid stereo pair with a given gimbal.yaml (default); L >= 1: the simulator's L-joint gimbal, "
+        "calibrated with automatic initialization",
+    )
+    p.add_argument("--seed", type=int, default=0, help="random seed of the scene and image noise (default 0)")
     p.add_argument("--format", choices=["ros2", "ros1"], default="ros2", help="bag format (default ros2)")
     p.add_argument("--storage", choices=["sqlite3", "mcap"], default="sqlite3", help="ROS2 storage plugin")
     p.add_argument("--workdir", help="folder for the bag and outputs (default: a temporary folder, deleted)")
@@ -266,10 +425,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--bag", help=argparse.SUPPRESS)
     a = p.parse_args(argv)
     if a.child:
-        print(json.dumps(_child(a.child, Path(a.workdir), a.bag)))
+        print(json.dumps(_child(a.child, Path(a.workdir), a.bag, a.joints)))
         return 0
     wd = Path(a.workdir) if a.workdir else None
-    run(a.frames, a.format, a.storage, wd, a.keep, not a.skip_calibrate)
+    run(a.frames, a.format, a.storage, wd, a.keep, not a.skip_calibrate, joints=a.joints, seed=a.seed)
     return 0
 
 
