@@ -91,6 +91,14 @@ def _add_reader_options(p: argparse.ArgumentParser) -> None:
         help="use a snapshot only if both cameras see at least N of the same target corners (default 8)",
     )
     p.add_argument(
+        "--corners",
+        choices=["all", "common"],
+        default="all",
+        help="all: every detected corner of each camera (the maximum-likelihood use of the data, default); "
+        "common: only the corners both cameras of a snapshot see, as cv2.stereoCalibrate uses them. common helps "
+        "when the intrinsics fit the image periphery badly, where only one camera tends to see the board",
+    )
+    p.add_argument(
         "--quiet",
         action="store_true",
         help="no progress bar and no summary table (the progress bar, on stderr, is also off when stderr is not "

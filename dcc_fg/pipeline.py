@@ -27,10 +27,12 @@ def _stderr_is_terminal() -> bool:
 
 def _load_options(args: argparse.Namespace, report: dict[str, Any]) -> dict[str, Any]:
     """Reader options from the command line: progress bar (stderr, only on a terminal and without
-    ``--quiet``), pairing tolerance (``--sync-tolerance`` ms -> ns), ``--min-common-points``, and
-    the dict that receives the reader's counts for the summary."""
+    ``--quiet``), pairing tolerance (``--sync-tolerance`` ms -> ns), ``--min-common-points``,
+    ``--corners``, and the dict that receives the reader's counts for the summary."""
     report["min_common_points"] = int(getattr(args, "min_common_points", MIN_COMMON_POINTS))
+    report["corners"] = str(getattr(args, "corners", "all"))
     return {
+        "corners": report["corners"],
         "progress": not getattr(args, "quiet", False) and _stderr_is_terminal(),
         "tolerance_ns": int(round(float(getattr(args, "sync_tolerance", 5.0)) * 1e6)),
         "min_common_points": report["min_common_points"],
@@ -38,12 +40,16 @@ def _load_options(args: argparse.Namespace, report: dict[str, Any]) -> dict[str,
     }
 
 
-def _load(data: str, camchain: Any, target: str | None, **options: Any):  # noqa: ANN202 - CalibrationDataset
-    try:
-        from dcc_fg.io.dataset import load_dataset
-    except ImportError as exc:  # pragma: no cover - only while the readers are being built
-        raise ValueError(f"reading {data} needs dcc_fg.io.dataset, which is not available: {exc}") from None
-    return load_dataset(data, camchain=camchain, target=target, **options)
+def _load(data: str, camchain: Any, target: str | None, corners: str = "all", **options: Any):  # noqa: ANN202
+    """The CalibrationDataset of ``data``; ``corners='common'`` keeps only the corners both cameras
+    of a snapshot see (``--corners``)."""
+    from dcc_fg.data import common_corners
+    from dcc_fg.io.dataset import load_dataset
+
+    if corners not in ("all", "common"):
+        raise ValueError(f"--corners must be all or common, got {corners}")
+    dataset = load_dataset(data, camchain=camchain, target=target, **options)
+    return common_corners(dataset) if corners == "common" else dataset
 
 
 def _T_ds_std(result: CalibrationResult) -> dict[str, dict[str, float]] | None:

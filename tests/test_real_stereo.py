@@ -21,6 +21,7 @@ Run with ``-s`` to see the numbers.
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import cv2
@@ -273,3 +274,25 @@ def test_euroc_imu_april_diverse_views(tmp_path: Path) -> None:
     for rot, trans in (err_all, err_common, err_cv):
         assert rot < 2e-3 and trans < 2e-3
     assert err_common[0] <= err_cv[0] + 1e-6 and err_common[1] <= err_cv[1] + 1e-6
+
+
+def test_cli_common_corners_matches_published_extrinsics(
+    euroc: tuple[CalibrationDataset, np.ndarray], tmp_path: Path
+) -> None:
+    """``dcc-fg calibrate ... --corners common`` is the common-corner calibration above, so on the
+    EuRoC cam_april frames it lands within 2 mrad / 2 mm of the published T_c1c0 from the CLI."""
+    data, T_ref = euroc
+    chain = {name: CamchainEntry(cam) for name, cam in (("cam0", data.static_camera), ("cam1", data.dynamic_camera))}
+    camchain = tmp_path / "camchain.yaml"
+    camchain.write_text(camchain_to_yaml(chain))
+    folder = real("euroc_aprilgrid") / "calib" / "cam_april"
+    out = tmp_path / "out"
+    args = ["calibrate", str(folder), "--camchain", str(camchain), "--joints", "0", "--corners", "common"]
+    assert main([*args, "--quiet", "--out", str(out)]) == 0
+    got = load_calibration(out / "calibration.yaml").T_ds(np.zeros(0))
+    ref = calibrate(common_corners(data), L0, CalibrationOptions(compute_covariance=False)).T_ds(0)
+    assert max(rotation_translation_error(got, ref)) < 1e-7
+    rot, trans = rotation_translation_error(got, T_ref)
+    assert rot < 2e-3 and trans < 2e-3
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["input"]["corners"] == "common"
