@@ -21,14 +21,14 @@ What is measured
    a. dcc-fg / GTSAM: the factor graph built as ``calibrate()`` builds it (one ``bundle_factor`` per
       snapshot with analytic Jacobians, one ``mean_prior_factor``), solved by
       ``gtsam.LevenbergMarquardtOptimizer`` with calibrate()'s parameters (``lm_params``: relative
-      error tolerance 1e-8, absolute 1e-12, diagonal damping, Nielsen's lambda update, at most 500
+      error tolerance 1e-10, absolute 1e-12, diagonal damping, Nielsen's lambda update, at most 500
       iterations). Only ``optimize()`` is timed;
       graph construction is reported separately.
    b. scipy: ``least_squares(method='trf')`` on the same whitened residual vector (pixel residuals
       ``h(x) - z`` divided by the pixel sigma, computed by the same ``bundle_residuals`` the factors
       call, plus the same gauge row), target poses parameterized as rotation vector + translation,
       Jacobian by 2-point finite differences with the structural sparsity pattern passed as
-      ``jac_sparsity`` (so the trust-region subproblems are solved by LSMR), ``ftol=1e-8``; ``xtol``
+      ``jac_sparsity`` (so the trust-region subproblems are solved by LSMR), ``ftol=1e-10``; ``xtol``
       and ``gtol`` are set to 1e-12 so that, as in GTSAM, the relative decrease of the cost is what
       stops the solver. Only the ``least_squares`` call is timed. Defaults: ``x_scale=1`` (trf's
       default) and LSMR ``atol = btol = 1e-10``. With LSMR's default tolerances (``--lsmr-tol 0``)
@@ -91,7 +91,7 @@ from factors.camera import CameraModel
 FloatArray = NDArray[np.float64]
 MODE = "encoderless"
 PIXEL_SIGMA = 0.4
-FTOL = 1e-8
+FTOL = 1e-10
 
 
 @dataclass

@@ -349,7 +349,7 @@ def observable_mask(N: FloatArray, tol: float = 1e-6) -> NDArray[np.bool_]:
 def lm_params(max_iterations: int) -> gtsam.LevenbergMarquardtParams:
     """Levenberg-Marquardt parameters of the calibration solve.
 
-    Relative cost decrease 1e-8 (absolute 1e-12) stops it; the damping is scaled by the diagonal
+    Relative cost decrease 1e-10 (absolute 1e-12) stops it; the damping is scaled by the diagonal
     of the information matrix (metres and radians alike). The damping update is Nielsen's
     (``useFixedLambdaFactor = False``: after a rejected step lambda grows by a factor that doubles
     each time, after an accepted one it shrinks). With GTSAM's fixed factor of 10 the nearly
@@ -360,7 +360,7 @@ def lm_params(max_iterations: int) -> gtsam.LevenbergMarquardtParams:
     """
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(max_iterations)
-    params.setRelativeErrorTol(1e-8)
+    params.setRelativeErrorTol(1e-10)
     params.setAbsoluteErrorTol(1e-12)
     params.setDiagonalDamping(True)
     params.setUseFixedLambdaFactor(False)
