@@ -839,17 +839,19 @@ def run_vio(
         if progress is not None:
             progress(i, len(frames))
     res = sm.result()
-    elapsed = time.perf_counter() - t_start
     duration = (frames[-1].timestamp_ns - frames[0].timestamp_ns) / NS
-    res.stats.update(
-        {
-            "processing_time_s": elapsed,
-            "data_duration_s": duration,
-            "real_time_factor": elapsed / duration if duration > 0 else float("nan"),
-            "frames": len(frames),
-        }
-    )
+    res.stats.update(timing_stats(time.perf_counter() - t_start, duration, len(frames)))
     return res
+
+
+def timing_stats(elapsed_s: float, duration_s: float, frames: int) -> dict[str, float | int]:
+    """Processing time, data duration (s), their ratio (the real-time factor) and the frame count."""
+    return {
+        "processing_time_s": elapsed_s,
+        "data_duration_s": duration_s,
+        "real_time_factor": elapsed_s / duration_s if duration_s > 0 else float("nan"),
+        "frames": frames,
+    }
 
 
 def write_vio_outputs(out_dir: str | Path, result: VioResult, extra: dict[str, Any] | None = None) -> None:

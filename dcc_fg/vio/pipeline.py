@@ -38,7 +38,7 @@ from numpy.typing import NDArray
 
 from dcc_fg.io.vio_bag import VioBag
 from dcc_fg.model import GimbalCalibration
-from dcc_fg.vio.backend import NS, InitialState, VioOptions, VioResult, VioSmoother
+from dcc_fg.vio.backend import NS, InitialState, VioOptions, VioResult, VioSmoother, timing_stats
 from dcc_fg.vio.frontend import FrontendConfig, GimbalHint, gimbal_outliers
 from dcc_fg.vio.joint_init import JointFit, fit_joint_angles
 from dcc_fg.vio.types import ImuConfig, TrackFrame
@@ -192,16 +192,8 @@ def run_vio_bag(
     if smoother is None:
         raise ValueError(f"{bag}: no camera frame lies within the IMU time span of topic {topics.imu}")
     result = smoother.result()
-    elapsed = time.perf_counter() - t_wall
     duration = (int(result.timestamps_ns[-1]) - int(result.timestamps_ns[0])) / NS
-    result.stats.update(
-        {
-            "processing_time_s": elapsed,
-            "data_duration_s": duration,
-            "real_time_factor": elapsed / duration if duration > 0 else float("nan"),
-            "frames": worker.counters["processed"],
-        }
-    )
+    result.stats.update(timing_stats(time.perf_counter() - t_wall, duration, worker.counters["processed"]))
     run = {
         "bag": str(bag),
         "topics": {"imu": topics.imu, "static": topics.static, "dynamic": None if mono else topics.dynamic},
