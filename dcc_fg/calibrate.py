@@ -16,7 +16,10 @@ initial values, which removes exactly the unobservable directions:
 * L = 0: all of ``tau_s`` (only the product ``T_de T_bs`` is observable);
 * encoderless, L >= 1: ``tau_s.rz`` and ``tau_s.tz`` (they absorb a constant offset of
   theta_1 and the DH ``d_1``), ``d_L, a_L, alpha_L`` (absorbed by ``tau_d``), and the mean of
-  theta_L over the snapshots (a prior on the mean: the offset of theta_L is absorbed by ``tau_d``);
+  theta_L over the reference snapshots (a prior on the mean: the offset of theta_L is absorbed by
+  ``tau_d``). The reference snapshots are all of them up to ``GAUGE_REFERENCE_SNAPSHOTS``, else that
+  many spread evenly over the data set: the prior links its snapshots into one dense block of the
+  elimination, whose cost would otherwise grow with the cube of the number of snapshots;
 * encoders, L = 1: ``tau_s.rz, tau_s.tz, d_1, a_1, alpha_1``; encoders, L >= 2:
   ``tau_s.tz, d_L, a_L, alpha_L``.
 
@@ -59,6 +62,15 @@ KIN_KEY = gtsam.symbol("k", 0)
 COVARIANCE_CHUNK = 200  # snapshots per joint-marginal call (dense block: (nk + 200 L)^2 doubles)
 MIN_ROTATION_SPREAD_RAD = np.deg2rad(0.5)  # joint motion check (see check_joint_motion)
 GAUGE_SIGMA = 1e-6  # rad, prior on the mean of theta_L (a pure gauge direction: it costs nothing)
+GAUGE_REFERENCE_SNAPSHOTS = 100  # at most this many snapshots carry the mean prior (module docstring)
+
+
+def gauge_reference_snapshots(n_snapshots: int) -> NDArray[np.int64]:
+    """Indices of the snapshots whose mean theta_L is held: all, or ``GAUGE_REFERENCE_SNAPSHOTS``
+    spread evenly (first and last included)."""
+    if n_snapshots <= GAUGE_REFERENCE_SNAPSHOTS:
+        return np.arange(n_snapshots)
+    return np.unique(np.linspace(0, n_snapshots - 1, GAUGE_REFERENCE_SNAPSHOTS).round().astype(np.int64))
 
 
 def pose_key(i: int) -> int:
@@ -454,8 +466,9 @@ def calibrate(
                     layout, P_s, m.z_dynamic, P_d, m.z_static, cams, sigma_w, kin_key, th_key, th_const, robust
                 )
             )
+    ref = gauge_reference_snapshots(K)
     for j in offsets:
-        graph.add(mean_prior_factor([theta_key(i) for i in range(K)], j, float(thetas0[:, j].mean()), GAUGE_SIGMA))
+        graph.add(mean_prior_factor([theta_key(int(i)) for i in ref], j, float(thetas0[ref, j].mean()), GAUGE_SIGMA))
 
     params = lm_params(opt.max_iterations)
     initial_error = graph.error(values)
@@ -524,8 +537,8 @@ def calibrate(
         T_ds_cov = np.zeros((K, 6, 6))
         # One joint marginal per chunk of snapshots instead of two per snapshot: each GTSAM
         # marginal call costs about as much as a joint one over many keys (the mean prior on the
-        # joint angles puts them all in one clique), so per-snapshot calls made this O(K^2)
-        # (~70 s of covariances at K = 300, hours at K = 2,000). Chunks bound the dense block.
+        # reference snapshots' joint angles puts them in one clique), so per-snapshot calls made
+        # this O(K^2) (~70 s of covariances at K = 300). Chunks bound the dense block.
         for start in range(0, K, COVARIANCE_CHUNK):
             chunk = range(start, min(K, start + COVARIANCE_CHUNK))
             keys = ([kin_key] if kin_key is not None else []) + (

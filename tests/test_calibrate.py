@@ -229,3 +229,25 @@ def test_joint_never_moves_without_kinematics_says_it_cannot_tell_which() -> Non
     data, _, _ = simulate_snapshots(sim.truth, locked, sim.config, np.random.default_rng(0), "locked joint")
     with pytest.raises(ValueError, match="rotates about only 1 independent axis.*images alone do not tell which"):
         auto_initialize(data, 2)
+
+
+def test_gauge_on_reference_snapshots_is_the_same_solution(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Above GAUGE_REFERENCE_SNAPSHOTS snapshots the mean prior on theta_L covers an evenly spread
+    subset: a different gauge, so the gauge-invariant results (T_ds per snapshot and its covariance,
+    joint angles up to one constant offset of theta_L) equal those of the prior over all snapshots."""
+    import dcc_fg.calibrate as cal_mod
+
+    sim = simulate_calibration(4, SceneConfig(n_calibration=150, n_validation=1))
+    assert len(cal_mod.gauge_reference_snapshots(150)) == cal_mod.GAUGE_REFERENCE_SNAPSHOTS
+    subset = calibrate(sim.calibration_set, sim.initial)
+    monkeypatch.setattr(cal_mod, "GAUGE_REFERENCE_SNAPSHOTS", 10_000)
+    every = calibrate(sim.calibration_set, sim.initial)
+    e_sub = evaluate_against_truth(subset, sim.truth, sim.joints_calibration)
+    e_all = evaluate_against_truth(every, sim.truth, sim.joints_calibration)
+    # same optimum: differences far below the T_ds errors themselves (~1e-3 rad, ~3e-4 m)
+    np.testing.assert_allclose(e_sub.T_ds, e_all.T_ds, atol=1e-8)
+    np.testing.assert_allclose(subset.T_ds_covariances, every.T_ds_covariances, rtol=1e-5, atol=1e-14)
+    d = subset.joint_angles - every.joint_angles
+    np.testing.assert_allclose(d[:, 0], 0.0, atol=1e-8)  # theta_1's offset is held by tau_s.rz
+    np.testing.assert_allclose(d[:, 1], d[0, 1], atol=1e-8)  # theta_L: one constant offset
+    assert subset.final_error == pytest.approx(every.final_error, rel=1e-9)
