@@ -129,9 +129,13 @@ def _rotation_one_joint(R_sd: FloatArray) -> tuple[FloatArray, FloatArray]:
 def _axis_pair_cost(R_sd: FloatArray, U: FloatArray) -> tuple[FloatArray, FloatArray]:
     """For candidate joint-1 axes U (M, 3) in s: the smallest eigenvalue of the covariance of
     ``r_i = R_sd_i^T u`` over the snapshots and its eigenvector (the best joint-2 axis in d)."""
-    r = np.einsum("kji,mj->mki", R_sd, U)
-    r = r - r.mean(axis=1, keepdims=True)
-    C = np.einsum("mki,mkj->mij", r, r) / R_sd.shape[0]
+    K = R_sd.shape[0]
+    C = np.empty((U.shape[0], 3, 3))
+    step = max(1, 200_000 // max(K, 1))  # candidates per block: (step, K, 3) doubles, ~5 MB
+    for a in range(0, U.shape[0], step):
+        r = np.einsum("kji,mj->mki", R_sd, U[a : a + step])
+        r -= r.mean(axis=1, keepdims=True)
+        C[a : a + step] = np.einsum("mki,mkj->mij", r, r) / K
     w, V = np.linalg.eigh(C)
     return w[:, 0], V[:, :, 0]
 
