@@ -20,7 +20,7 @@ from dcc_fg.sim.calibration_scene import SceneConfig, random_mechanism, simulate
 from dcc_fg.sim.evaluation import evaluate_against_truth
 
 N_GEOMETRIES = 50
-N_REQUIRED = 48
+N_REQUIRED = 48  # the issue's requirement; 49 converge (geometry 1 is refused as unobservable, below)
 FAST = CalibrationOptions(compute_covariance=False)
 
 
@@ -40,6 +40,43 @@ def same_accuracy(sim, auto: CalibrationResult, ref: CalibrationResult) -> tuple
     return bool(r_rot <= 1.5 and r_tr <= 1.5), r_rot, r_tr
 
 
+def test_three_joint_rotation_ik_inverts_the_chain() -> None:
+    """Closed-form IK of Rz(t1) Rx(a1) Rz(t2) Rx(a2) Rz(t3) (theta_3 came out negated before), and
+    the theta_2 branch: the other branch fits the same rotations with the twists negated."""
+    from dcc_fg.auto_init import _rotation_ik
+    from factors import chain
+
+    rng = np.random.default_rng(3)
+    th = rng.uniform(-1.5, 1.5, size=(20, 3))
+    th[:, 1] = np.abs(th[:, 1]) + 0.1
+    al = np.array([1.1, -0.6, 0.0])
+    Rx1, Rx2 = chain.rot_x(al[0]), chain.rot_x(al[1])
+    Q = np.array([chain.rot_z(a) @ Rx1 @ chain.rot_z(b) @ Rx2 @ chain.rot_z(c) for a, b, c in th])
+    out, misfit = _rotation_ik(Q, al, 1.0)
+    np.testing.assert_allclose(out, th, atol=1e-9)
+    assert np.abs(misfit).max() < 1e-12
+    out2, misfit2 = _rotation_ik(Q, -al, -1.0)
+    assert np.abs(misfit2).max() < 1e-12
+    np.testing.assert_allclose(out2[:, 1], -th[:, 1], atol=1e-9)
+
+
+def test_two_joint_starts_ranked_on_a_subset_of_many_snapshots() -> None:
+    """Above SCREEN_SNAPSHOTS snapshots the L = 2 starts are ranked on a subset; the fit on all of
+    them still reaches the optimum of the pose-level fit started from the truth."""
+    from dcc_fg.auto_init import SCREEN_SNAPSHOTS, pnp_T_ds
+    from dcc_fg.init import pose_level_refine
+
+    sim = simulate_calibration(5, SceneConfig(n_calibration=150, n_validation=1))
+    assert len(sim.calibration_set.snapshots) > SCREEN_SNAPSHOTS
+    T = pnp_T_ds(sim.calibration_set)
+    _, _, rms = auto_initialize(sim.calibration_set, 2, T_ds=T)
+    free = np.ones(18, dtype=bool)
+    free[[2, 5, 15, 16, 17]] = False
+    ref = pose_level_refine(sim.truth.kin, 2, T, sim.joints_calibration, free, [1], True)[2]
+    assert rms <= ref + 1e-6
+
+
+@pytest.mark.slow
 def test_random_two_joint_geometries_converge_without_gimbal_yaml() -> None:
     rng = np.random.default_rng(2024)
     ok, lines = 0, []
@@ -54,7 +91,7 @@ def test_random_two_joint_geometries_converge_without_gimbal_yaml() -> None:
             lines.append(
                 f"{g}: {good} rot x{r_rot:.3f} tr x{r_tr:.3f} cost {auto.final_error:.2f}/{ref.final_error:.2f}"
             )
-        except ValueError as exc:  # e.g. a degenerate draw refused as unobservable
+        except ValueError as exc:  # a degenerate draw refused as unobservable (geometry 1, reference run too)
             good = False
             lines.append(f"{g}: error {exc}")
         ok += good
@@ -63,15 +100,39 @@ def test_random_two_joint_geometries_converge_without_gimbal_yaml() -> None:
     assert ok >= N_REQUIRED
 
 
+# L = 1 and L = 3 over seeds of the pinned scenes (81 snapshots each); the seed counts keep this file's
+# CI time in budget (L = 3 costs 15-50 s per seed, mostly the two corner-level solves). Measured with
+# the variable-projection search of dcc_fg/auto_init.py: L = 3 seeds 0-19 all converge, L = 1 seeds
+# 0-9 all converge; before it, 5 of L = 3 seeds 0-9 did.
+PINNED_SEEDS = {1: (range(5), 5), 3: (range(6), 5)}  # L: (seeds, required successes)
+
+
+@pytest.mark.slow
 @pytest.mark.parametrize("n_joints", [1, 3])
 def test_pinned_mechanisms_converge_without_gimbal_yaml(n_joints: int) -> None:
-    sim = simulate_calibration(7, SceneConfig(n_joints=n_joints, n_validation=1))
-    auto = calibrate_auto(sim.calibration_set, n_joints)
-    ref = calibrate(sim.calibration_set, sim.initial, FAST)
-    good, r_rot, r_tr = same_accuracy(sim, auto, ref)
-    print(f"L={n_joints}: rot x{r_rot:.3f} tr x{r_tr:.3f} cost {auto.final_error:.3f} / {ref.final_error:.3f}")
-    assert good
-    assert auto.final_error <= ref.final_error * (1 + 1e-6)
+    seeds, required = PINNED_SEEDS[n_joints]
+    ok, lines = 0, []
+    t0 = time.perf_counter()
+    for seed in seeds:
+        t_seed = time.perf_counter()
+        sim = simulate_calibration(seed, SceneConfig(n_joints=n_joints, n_validation=1))
+        try:
+            auto = calibrate_auto(sim.calibration_set, n_joints)
+            ref = calibrate(sim.calibration_set, sim.initial, FAST)
+            good, r_rot, r_tr = same_accuracy(sim, auto, ref)
+            # the automatic start reaches the reference optimum, or a lower one
+            good &= auto.final_error <= ref.final_error * (1 + 1e-6)
+            lines.append(
+                f"L={n_joints} seed {seed}: {good} rot x{r_rot:.3f} tr x{r_tr:.3f} "
+                f"cost {auto.final_error:.3f}/{ref.final_error:.3f}, {time.perf_counter() - t_seed:.1f} s"
+            )
+        except ValueError as exc:
+            good = False
+            lines.append(f"L={n_joints} seed {seed}: error {exc}")
+        ok += good
+    print("\n".join(lines))
+    print(f"L={n_joints}: {ok}/{len(seeds)} converged, {time.perf_counter() - t0:.1f} s")
+    assert ok >= required
 
 
 def test_cli_calibrate_without_gimbal_yaml(tmp_path, capsys) -> None:
