@@ -686,18 +686,30 @@ def check_joint_motion(
     degeneracy is only approximate at a fitted start and the information-matrix check can miss it;
     the solve then "succeeds" with meaningless joint angles.
 
-    This sees every locked joint for L <= 2. For L = 3 two moving joints already spread the
-    rotations over 3 directions, so a locked joint of an L = 3 mechanism is left to the
-    information-matrix check in :func:`calibrate` (which catches most such cases, not all).
+    This sees every locked joint for L <= 2. For L >= 3 two moving joints already spread the
+    rotations over 3 directions (the second joint's axis turns with the first), so the rotations are
+    also tested for the structure of a two-joint chain (:func:`dcc_fg.joint_motion.two_axis_fit`):
+    an axis fixed in s followed by one fixed in d. When that fits within the PnP noise (chi-square
+    per degree of freedom below ``dcc_fg.joint_motion.MAX_CHI2_PER_DOF``) and leaves less than
+    ``MIN_ROTATION_SPREAD_RAD`` RMS unexplained, at most two joints move (see
+    :func:`dcc_fg.joint_motion.two_joint_report`; a mechanism whose third joint moves so little that
+    its rotation is lost in the PnP noise is refused too).
 
     Which joint is flat is not visible in the images alone (one joint rotating about a fixed axis
     looks the same whichever it is); it is named from ``thetas0`` (initial angles spanning < 2 deg)
-    or else from ``initial``'s joint axes (the axis the observed rotations do not use).
+    or else from ``initial``'s joint axes (for L <= 2 the axis the observed rotations do not use; for
+    L = 3 the pair of axes the two-joint structure matches, :func:`dcc_fg.joint_motion.locked_joint_of_three`).
     """
     spread, V = rotation_spread(T_ds_pnp)
     need = min(L, 3)
     n_dirs = int(np.sum(spread > MIN_ROTATION_SPREAD_RAD))
     if n_dirs >= need:
+        if L >= 3:
+            from dcc_fg.joint_motion import two_joint_report
+
+            report = two_joint_report(data, T_ds_pnp, L, MIN_ROTATION_SPREAD_RAD, thetas0, initial)
+            if report is not None:
+                raise ValueError(report)
         return
     n_flat = need - n_dirs
     msg = (
