@@ -231,15 +231,23 @@ def test_common_corners_keeps_ids_aligned() -> None:
     assert out.timestamp_ns == 7
 
 
-def test_cli_calibrates_l0_without_gimbal_yaml(euroc: tuple[CalibrationDataset, np.ndarray], tmp_path: Path) -> None:
-    """``dcc-fg calibrate DATA --camchain C --joints 0`` needs no gimbal.yaml and gives calibrate()'s T_ds."""
-    data, _ = euroc
+def _cli_calibrate_cam_april(data: CalibrationDataset, tmp_path: Path, *options: str) -> Path:
+    """``dcc-fg calibrate`` on the EuRoC cam_april folder with ``data``'s intrinsics as camchain and
+    ``--joints 0`` plus ``options``; returns the output folder."""
     chain = {name: CamchainEntry(cam) for name, cam in (("cam0", data.static_camera), ("cam1", data.dynamic_camera))}
     camchain = tmp_path / "camchain.yaml"
     camchain.write_text(camchain_to_yaml(chain))
     folder = real("euroc_aprilgrid") / "calib" / "cam_april"
     out = tmp_path / "out"
-    assert main(["calibrate", str(folder), "--camchain", str(camchain), "--joints", "0", "--out", str(out)]) == 0
+    args = ["calibrate", str(folder), "--camchain", str(camchain), "--joints", "0", *options, "--out", str(out)]
+    assert main(args) == 0
+    return out
+
+
+def test_cli_calibrates_l0_without_gimbal_yaml(euroc: tuple[CalibrationDataset, np.ndarray], tmp_path: Path) -> None:
+    """``dcc-fg calibrate DATA --camchain C --joints 0`` needs no gimbal.yaml and gives calibrate()'s T_ds."""
+    data, _ = euroc
+    out = _cli_calibrate_cam_april(data, tmp_path)
     got = load_calibration(out / "calibration.yaml")
     ref = calibrate(data, L0, CalibrationOptions(compute_covariance=False)).T_ds(0)
     rot, trans = rotation_translation_error(got.T_ds(np.zeros(0)), ref)
@@ -282,13 +290,7 @@ def test_cli_common_corners_matches_published_extrinsics(
     """``dcc-fg calibrate ... --corners common`` is the common-corner calibration above, so on the
     EuRoC cam_april frames it lands within 2 mrad / 2 mm of the published T_c1c0 from the CLI."""
     data, T_ref = euroc
-    chain = {name: CamchainEntry(cam) for name, cam in (("cam0", data.static_camera), ("cam1", data.dynamic_camera))}
-    camchain = tmp_path / "camchain.yaml"
-    camchain.write_text(camchain_to_yaml(chain))
-    folder = real("euroc_aprilgrid") / "calib" / "cam_april"
-    out = tmp_path / "out"
-    args = ["calibrate", str(folder), "--camchain", str(camchain), "--joints", "0", "--corners", "common"]
-    assert main([*args, "--quiet", "--out", str(out)]) == 0
+    out = _cli_calibrate_cam_april(data, tmp_path, "--corners", "common", "--quiet")
     got = load_calibration(out / "calibration.yaml").T_ds(np.zeros(0))
     ref = calibrate(common_corners(data), L0, CalibrationOptions(compute_covariance=False)).T_ds(0)
     assert max(rotation_translation_error(got, ref)) < 1e-7
