@@ -15,7 +15,7 @@ from dcc_fg.io.bag_writer import BagWriter, quaternion_xyzw
 from dcc_fg.io.bags import bag_messages, open_bag
 from dcc_fg.io.vio_bag import VioBag, VioFrame
 from dcc_fg.model import load_calibration
-from dcc_fg.vio.types import ImuSamples, load_imu_config
+from dcc_fg.data.vio import ImuSamples, load_imu_config
 
 T0 = 1_600_000_000_000_000_000
 MS = 1_000_000

@@ -16,7 +16,7 @@ from dcc_fg.io.vio_bag import VioBag
 from dcc_fg.model import load_calibration
 from dcc_fg.vio.epipolar import epipolar_distance, essential
 from dcc_fg.vio.frontend import Frontend
-from dcc_fg.vio.types import ImuSamples, load_imu_config
+from dcc_fg.data.vio import ImuSamples, load_imu_config
 from tests.conftest import shared_data
 
 

@@ -14,7 +14,7 @@ from dcc_fg.io.tum import read_tum, write_tum
 from dcc_fg.sim.trajectory import FlightConfig, default_static_mount, flight_calibration, simulate_flight
 from dcc_fg.vio.backend import VioOptions, VioResult, run_vio, validate_imu, write_vio_outputs
 from dcc_fg.vio.evaluate import GroundTruth, evaluate_output, evaluate_trajectory, joint_rmse, load_ground_truth
-from dcc_fg.vio.types import ImuConfig, ImuSamples, TrackFrame
+from dcc_fg.data.vio import ImuConfig, ImuSamples, TrackFrame
 
 
 @pytest.fixture(scope="module")

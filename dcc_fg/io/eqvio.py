@@ -11,7 +11,7 @@ bgx,...,u_norm,v_norm,key,value`` and three kinds of rows:
 * ``vision_feature``: ``t_abs``, ``frame_idx``, ``landmark_id`` and the undistorted normalized
   coordinates ``u_norm, v_norm`` of cam0.
 
-The IMU noise figures are EuRoC's ADIS16448 values (:class:`~dcc_fg.vio.types.ImuConfig` defaults).
+The IMU noise figures are EuRoC's ADIS16448 values (:class:`~dcc_fg.data.vio.ImuConfig` defaults).
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ from pathlib import Path
 import gtsam
 import numpy as np
 
-from dcc_fg.vio.types import ImuConfig, ImuSamples, TrackFrame
+from dcc_fg.data.vio import ImuConfig, ImuSamples, TrackFrame
 from factors import chain
 
 NS = 1_000_000_000

@@ -28,7 +28,7 @@ from numpy.typing import NDArray
 
 from dcc_fg.io.bag_writer import BagWriter
 from dcc_fg.model import GimbalCalibration, write_text_atomic
-from dcc_fg.vio.types import ImuConfig, ImuSamples
+from dcc_fg.data.vio import ImuConfig, ImuSamples
 from factors.camera import CameraModel
 from factors.chain import inv_se3, tau_from_se3
 

@@ -3,7 +3,7 @@
 :class:`VioBag` makes a first pass over the bag that reads the whole IMU topic (a few MB even
 for an hour at 200 Hz) and the image header stamps, validates them and pairs the static and
 gimbal image stamps; iterating makes a second pass that decodes the images as they come and
-yields, in time order, :class:`~dcc_fg.vio.types.ImuSamples` chunks (every IMU sample up to and
+yields, in time order, :class:`~dcc_fg.data.vio.ImuSamples` chunks (every IMU sample up to and
 including the next frame's time) and :class:`VioFrame` objects.  Only the images waiting for
 their partner are held in memory.
 
@@ -36,7 +36,7 @@ from numpy.typing import NDArray
 from dcc_fg.detection import to_gray8
 from dcc_fg.io.bags import COMPRESSED_IMAGE, IMAGE, bag_messages, decode_image, open_bag, stamp_ns
 from dcc_fg.io.pairing import DEFAULT_TOLERANCE_NS, pair_timestamps
-from dcc_fg.vio.types import ImuSamples
+from dcc_fg.data.vio import ImuSamples
 
 log = logging.getLogger(__name__)
 

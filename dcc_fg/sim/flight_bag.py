@@ -43,7 +43,7 @@ from dcc_fg.sim.trajectory import (
     flight_calibration,
     simulate_flight,
 )
-from dcc_fg.vio.types import ImuConfig
+from dcc_fg.data.vio import ImuConfig
 from factors.camera import CameraModel
 
 START_NS = 1_600_000_000 * 1_000_000_000
@@ -207,7 +207,7 @@ def write_flight(
 def load_flight_calibration(path: str | Path) -> tuple[GimbalCalibration, ImuConfig]:
     """The calibration and IMU configuration of a ``calibration.yaml`` with an ``imu:`` section."""
     from dcc_fg.model import load_calibration
-    from dcc_fg.vio.types import load_imu_config
+    from dcc_fg.data.vio import load_imu_config
 
     imu = load_imu_config(path)
     if imu is None:

@@ -26,8 +26,8 @@ API
   trajectory stays inside it, so nothing occludes a landmark from a camera inside the room.
 * :func:`simulate_flight(config, imu, joints, seed) -> FlightTruth` -- truth at the IMU rate
   (``t_ns``, ``T_WI`` (N,4,4), ``v_W``, ``acc_bias``, ``gyro_bias``, ``theta`` (N,L)), the noisy
-  IMU (:class:`~dcc_fg.vio.types.ImuSamples`: white noise + bias random walk from
-  :class:`~dcc_fg.vio.types.ImuConfig`, ADIS16448 defaults) and camera frame times
+  IMU (:class:`~dcc_fg.data.vio.ImuSamples`: white noise + bias random walk from
+  :class:`~dcc_fg.data.vio.ImuConfig`, ADIS16448 defaults) and camera frame times
   ``frame_t_ns`` (``camera_rate`` Hz, on IMU sample times).
 * :func:`default_static_mount` -- ``T_sI`` of the static camera (forward, tilted down).
 * :func:`simulate_tracks(truth, world, calibration, T_sI, ...) -> list[TrackFrame]` -- projects
@@ -45,7 +45,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from dcc_fg.model import GimbalCalibration
-from dcc_fg.vio.types import ImuConfig, ImuSamples, TrackFrame
+from dcc_fg.data.vio import ImuConfig, ImuSamples, TrackFrame
 from factors import chain
 from factors.camera import CameraModel
 

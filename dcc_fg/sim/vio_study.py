@@ -25,7 +25,7 @@ from dcc_fg.sim.trajectory import (
 )
 from dcc_fg.vio.backend import InitialState, VioOptions, VioResult, run_vio
 from dcc_fg.vio.evaluate import GroundTruth, evaluate_trajectory, joint_rmse
-from dcc_fg.vio.types import ImuConfig
+from dcc_fg.data.vio import ImuConfig
 
 
 @dataclass(frozen=True)

@@ -1,7 +1,7 @@
 """Keyframe fixed-lag smoother of the gimbal-aware VIO (paper section IV-C).
 
-Input: :class:`~dcc_fg.vio.types.TrackFrame` lists (undistorted normalized coordinates, one landmark
-id space across both cameras) and :class:`~dcc_fg.vio.types.ImuSamples`; no images.
+Input: :class:`~dcc_fg.data.vio.TrackFrame` lists (undistorted normalized coordinates, one landmark
+id space across both cameras) and :class:`~dcc_fg.data.vio.ImuSamples`; no images.
 
 State per keyframe k (gtsam keys): ``x(k)`` Pose3 ``T_WI``, ``v(k)`` velocity in W (m/s), ``b(k)``
 ``imuBias.ConstantBias`` (accelerometer m/s^2, gyroscope rad/s) and, in ``dcc`` mode, ``t(k)`` the
@@ -10,7 +10,7 @@ joint angles (Vector L, rad). Landmarks ``l(n)`` are Point3 in W. W has gravity 
 Factors:
 
 * ``CombinedImuFactor`` between consecutive keyframes (``PreintegratedCombinedMeasurements`` with the
-  Kalibr noise densities of :class:`~dcc_fg.vio.types.ImuConfig`, bias random walk included);
+  Kalibr noise densities of :class:`~dcc_fg.data.vio.ImuConfig`, bias random walk included);
 * static camera: gtsam's ``GenericProjectionFactorCal3_S2`` on normalized coordinates with
   ``body_P_sensor = T_Is`` and a Huber loss;
 * gimbal camera: the paper's eq. 14 (:func:`factors.vio.gimbal_reprojection_factor`, keys pose,
@@ -47,7 +47,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from dcc_fg.model import GimbalCalibration
-from dcc_fg.vio.types import ImuConfig, ImuSamples, TrackFrame
+from dcc_fg.data.vio import ImuConfig, ImuSamples, TrackFrame
 from factors import chain
 from factors.calibration import RobustLoss
 from factors.vio import (

@@ -22,7 +22,7 @@ import yaml
 from dcc_fg.model import load_calibration
 from dcc_fg.vio.backend import VioOptions, write_vio_outputs
 from dcc_fg.vio.pipeline import BagTopics, PipelineOptions, run_vio_bag
-from dcc_fg.vio.types import ImuConfig, load_imu_config
+from dcc_fg.data.vio import ImuConfig, load_imu_config
 
 #: Kalibr imu.yaml keys -> ImuConfig fields
 KALIBR_IMU_KEYS = {

@@ -31,7 +31,7 @@ Per synchronized frame pair (:meth:`Frontend.process`):
    younger track: ids are never re-assigned to different points); shared pairs that fail the
    test are split.
 
-Output: a :class:`~dcc_fg.vio.types.TrackFrame` of undistorted normalized coordinates
+Output: a :class:`~dcc_fg.data.vio.TrackFrame` of undistorted normalized coordinates
 (:meth:`CameraModel.undistort_points`).  Pixels follow OpenCV's convention.  Times in ns.
 """
 
@@ -55,7 +55,7 @@ from dcc_fg.vio.epipolar import (
     sampson_distance,
 )
 from dcc_fg.vio.matching import OrbDescriber, mutual_ratio_matches
-from dcc_fg.vio.types import TrackFrame
+from dcc_fg.data.vio import TrackFrame
 from factors.camera import CameraModel
 from factors.chain import inv_se3
 

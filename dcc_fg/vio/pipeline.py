@@ -3,7 +3,7 @@
 One pass over the bag (:class:`~dcc_fg.io.vio_bag.VioBag` reads the IMU topic first, then decodes
 the images one synchronized pair at a time): every frame pair goes through
 :class:`~dcc_fg.vio.frontend.Frontend` (KLT tracks, static RANSAC, static <-> gimbal matching with the
-current T_ds(theta) estimate) and the resulting :class:`~dcc_fg.vio.types.TrackFrame` into
+current T_ds(theta) estimate) and the resulting :class:`~dcc_fg.data.vio.TrackFrame` into
 :class:`~dcc_fg.vio.backend.VioSmoother`.
 
 Gimbal-camera outliers (``dcc`` mode) follow the two stages the paper proposes as future work: the
@@ -41,7 +41,7 @@ from dcc_fg.model import GimbalCalibration
 from dcc_fg.vio.backend import NS, InitialState, VioOptions, VioResult, VioSmoother, timing_stats
 from dcc_fg.vio.frontend import FrontendConfig, GimbalHint, gimbal_outliers
 from dcc_fg.vio.joint_init import JointFit, fit_joint_angles
-from dcc_fg.vio.types import ImuConfig, TrackFrame
+from dcc_fg.data.vio import ImuConfig, TrackFrame
 from dcc_fg.vio.worker import FrontendWorker, WorkerSpec, resolve_mode
 
 FloatArray = NDArray[np.float64]

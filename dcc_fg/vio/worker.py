@@ -36,7 +36,7 @@ from numpy.typing import NDArray
 from dcc_fg.io.vio_bag import VioBag
 from dcc_fg.model import GimbalCalibration
 from dcc_fg.vio.frontend import DynamicSnapshot, Frontend, FrontendConfig
-from dcc_fg.vio.types import TrackFrame
+from dcc_fg.data.vio import TrackFrame
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
