@@ -42,7 +42,7 @@ What is measured
    (interpreter start and imports included).
 3. The calibration is compared with the rendering's ground truth on the gauge-invariant
    per-snapshot ``T_ds(theta_i)`` (ARCHITECTURE.md): the rotation angle (rad) and the norm of the
-   translation part (m) of ``Log(T_ds_true^-1 T_ds_est)`` (:func:`dcc_fg.sim.evaluation.T_ds_errors`)
+   translation part (m) of ``Log(T_ds_true^-1 T_ds_est)`` (:func:`dcc_fg.studies.calibration_accuracy.T_ds_errors`)
    for every snapshot the calibration used (``T_ds_error``: RMS, median and max over snapshots).
    For L = 0, T_ds is one transform (also reported in mrad / mm as before).  ``pixel_rms_per_axis``
    is the calibration's per-axis RMS reprojection residual (the detection noise, px).
@@ -315,7 +315,7 @@ def evaluate(workdir: Path, joints: int) -> dict[str, Any]:
     """
     from dcc_fg.io.outputs import read_joint_angles_csv
     from dcc_fg.model import load_calibration
-    from dcc_fg.sim.evaluation import T_ds_errors
+    from dcc_fg.studies.calibration_accuracy import T_ds_errors
 
     out_dir = workdir / "out"
     cal = load_calibration(out_dir / "calibration.yaml")

@@ -18,7 +18,7 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from dcc_fg.sim.vio_study import StudyConfig, run_mode
+from dcc_fg.studies.vio_study import StudyConfig, run_mode
 
 
 def run(duration: float = 60.0, seed: int = 0, eq14: bool = False, verbose: bool = True) -> dict[str, Any]:

@@ -20,7 +20,7 @@ from dcc_fg.calibrate import CalibrationOptions, CalibrationResult, calibrate
 from dcc_fg.io.outputs import write_joint_angles_csv, write_json
 from dcc_fg.report import demo_table, parameter_table
 from dcc_fg.sim.calibration_scene import SceneConfig, simulate_calibration
-from dcc_fg.sim.evaluation import cramer_rao_bound, evaluate_against_truth
+from dcc_fg.studies.calibration_accuracy import cramer_rao_bound, evaluate_against_truth
 
 # the paper's Tables I-III (simulation)
 PAPER = {

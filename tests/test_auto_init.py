@@ -17,7 +17,7 @@ from dcc_fg.auto_init import auto_initialize
 from dcc_fg.calibrate import CalibrationOptions, CalibrationResult, calibrate
 from dcc_fg.data import CalibrationDataset
 from dcc_fg.sim.calibration_scene import SceneConfig, random_mechanism, simulate_calibration
-from dcc_fg.sim.evaluation import evaluate_against_truth
+from dcc_fg.studies.calibration_accuracy import evaluate_against_truth
 
 N_GEOMETRIES = 50
 N_REQUIRED = 48  # the requirement; 49 converge (geometry 1 is refused as unobservable, below)
@@ -142,7 +142,7 @@ def test_cli_calibrate_without_gimbal_yaml(tmp_path, capsys) -> None:
     from dcc_fg.io.camchain import CamchainEntry, camchain_to_yaml
     from dcc_fg.io.detections import write_detection_csv
     from dcc_fg.io.outputs import read_joint_angles_csv
-    from dcc_fg.sim.evaluation import T_ds_errors
+    from dcc_fg.studies.calibration_accuracy import T_ds_errors
     from dcc_fg.targets import TargetGeometry
 
     grid = TargetGeometry.aprilgrid(6, 5, 0.06, 0.3)

@@ -62,8 +62,8 @@ def test_bench_memory_runs_and_streams(tmp_path: Path) -> None:
 
 def test_bench_memory_gimbal_auto_init(tmp_path: Path) -> None:
     from dcc_fg.sim.calibration_scene import simulate_calibration
-    from dcc_fg.sim.evaluation import cramer_rao_bound
     from dcc_fg.sim.write_dataset import default_target, load_ground_truth, scene_config
+    from dcc_fg.studies.calibration_accuracy import cramer_rao_bound
 
     bench = _load_bench()
     n, seed = 30, 0

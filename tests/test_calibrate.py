@@ -18,7 +18,7 @@ from dcc_fg.calibrate import (
 )
 from dcc_fg.data import Observation
 from dcc_fg.sim.calibration_scene import SceneConfig, simulate_calibration
-from dcc_fg.sim.evaluation import cramer_rao_bound, evaluate_against_truth
+from dcc_fg.studies.calibration_accuracy import cramer_rao_bound, evaluate_against_truth
 
 PAPER_JOINT_ERR = (5.89e-3, 2.38e-3)  # Table II, calibration set
 

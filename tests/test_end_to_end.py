@@ -37,8 +37,8 @@ from dcc_fg.cli import main
 from dcc_fg.io.outputs import read_joint_angles_csv
 from dcc_fg.model import load_calibration
 from dcc_fg.sim.calibration_scene import simulate_calibration
-from dcc_fg.sim.evaluation import T_ds_errors, cramer_rao_bound
 from dcc_fg.sim.write_dataset import load_ground_truth, write_calibration_dataset
+from dcc_fg.studies.calibration_accuracy import T_ds_errors, cramer_rao_bound
 
 RATIO = 1.5
 

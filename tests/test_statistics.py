@@ -8,7 +8,7 @@ import pytest
 
 from dcc_fg.calibrate import CalibrationOptions, calibrate
 from dcc_fg.sim.calibration_scene import simulate_calibration
-from dcc_fg.sim.evaluation import cramer_rao_bound, evaluate_against_truth, nees_T_ds
+from dcc_fg.studies.calibration_accuracy import cramer_rao_bound, evaluate_against_truth, nees_T_ds
 
 SEEDS = range(20)
 # 95% interval of the mean of 20 independent chi-square(6) variables: chi2(120) quantiles / 20.

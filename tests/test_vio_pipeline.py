@@ -21,7 +21,7 @@ import yaml
 from dcc_fg.cli import main
 from dcc_fg.sim.flight_bag import FlightBag, load_flight_calibration, write_flight
 from dcc_fg.sim.trajectory import FlightConfig, locked_gimbal
-from dcc_fg.sim.vio_study import slew_recovery_errors
+from dcc_fg.studies.vio_study import slew_recovery_errors
 from dcc_fg.vio.backend import VioOptions
 from dcc_fg.vio.evaluate import evaluate_output, evaluate_trajectory, joint_rmse, load_ground_truth
 from dcc_fg.vio.pipeline import run_vio_bag

@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from dcc_fg.sim.vio_study import StudyConfig, run_mode, slew_recovery_errors
+from dcc_fg.studies.vio_study import StudyConfig, run_mode, slew_recovery_errors
 
 CFG = StudyConfig(duration=30.0, density=0.5, pixel_sigma=0.5, seed=0)
 

@@ -143,7 +143,7 @@ def snapshot_error_figure(
     estimator ``E|e|^2 = trace(Sigma)``); without truth only the reported 1-sigma is drawn;
     (4) offset-free joint-angle errors with +-1 sigma error bars (or, without truth, the 1-sigma).
     """
-    from dcc_fg.sim.evaluation import T_ds_errors, offset_free_joint_errors
+    from dcc_fg.studies.calibration_accuracy import T_ds_errors, offset_free_joint_errors
 
     have_truth = truth is not None and thetas_true is not None
     L = result.calibration.n_joints

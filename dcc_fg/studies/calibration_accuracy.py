@@ -1,6 +1,6 @@
 """Ground-truth evaluation of a calibration on gauge-invariant quantities, and the Cramer-Rao bound.
 
-Gauge-invariant quantities (ARCHITECTURE.md):
+Gauge-invariant quantities (docs/architecture.md):
 
 * per snapshot, ``T_ds(theta_i)``; its error is ``xi_i = Log(T_ds_true^-1 T_ds_est) = [omega, v]``
   (rad, m), the gtsam Pose3 local coordinates at the true value;

@@ -14,6 +14,7 @@ from typing import Any
 
 import numpy as np
 
+from dcc_fg.data.vio import ImuConfig
 from dcc_fg.sim.trajectory import (
     FlightConfig,
     FlightTruth,
@@ -25,7 +26,6 @@ from dcc_fg.sim.trajectory import (
 )
 from dcc_fg.vio.backend import InitialState, VioOptions, VioResult, run_vio
 from dcc_fg.vio.evaluate import GroundTruth, evaluate_trajectory, joint_rmse
-from dcc_fg.data.vio import ImuConfig
 
 
 @dataclass(frozen=True)
