@@ -10,17 +10,22 @@ beside the paper's Tables I-III and writes ``calibration.yaml``, ``joint_angles.
 from __future__ import annotations
 
 import time
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from dcc_fg.calibrate import CalibrationOptions, CalibrationResult, calibrate
 from dcc_fg.io.outputs import write_joint_angles_csv, write_json
+from dcc_fg.model import GimbalCalibration
+from dcc_fg.plots.output import write_calibration_outputs
 from dcc_fg.report import demo_table, parameter_table
-from dcc_fg.sim.calibration_scene import SceneConfig, simulate_calibration
-from dcc_fg.studies.calibration_accuracy import cramer_rao_bound, evaluate_against_truth
+from dcc_fg.sim.calibration_scene import SceneConfig, SimulatedCalibration, simulate_calibration
+from dcc_fg.studies.calibration_accuracy import CramerRaoBound, cramer_rao_bound, evaluate_against_truth
+
+FloatArray = NDArray[np.float64]
 
 # the paper's Tables I-III (simulation)
 PAPER = {
@@ -35,8 +40,95 @@ PAPER = {
 }
 
 
-def _errors(result: CalibrationResult, truth: Any, thetas: np.ndarray) -> dict[str, Any]:
+def ground_truth_errors(result: CalibrationResult, truth: GimbalCalibration, thetas: FloatArray) -> dict[str, Any]:
+    """Gauge-invariant errors of ``result`` against the simulator's truth (``thetas``: true joint angles, rad)."""
     return evaluate_against_truth(result, truth, thetas).as_dict()
+
+
+@dataclass(frozen=True)
+class DemoRuns:
+    """The demo's simulated scene, its three calibrations and the Cramer-Rao bound of the calibration set."""
+
+    config: SceneConfig
+    sim: SimulatedCalibration
+    bundle: CalibrationResult  # maximum-likelihood (bundle) encoderless calibration
+    two_way: CalibrationResult  # the paper's two-way formulation on the same data
+    validation: CalibrationResult  # the validation set with the bundle calibration held
+    crb: CramerRaoBound
+
+
+def run_demo_calibrations(seed: int, n_joints: int) -> DemoRuns:
+    """Simulate the scene, calibrate (bundle, two-way), validate and compute the Cramer-Rao bound."""
+    cfg = SceneConfig(n_joints=n_joints)
+    sim = simulate_calibration(seed, cfg)
+    opts = CalibrationOptions(mode="encoderless", formulation="bundle")
+    res = calibrate(sim.calibration_set, sim.initial, opts)
+    res_two_way = calibrate(sim.calibration_set, sim.initial, replace(opts, formulation="two_way"))
+    val = calibrate(sim.validation_set, res.calibration, replace(opts, mode="validate"))
+    crb = cramer_rao_bound(
+        sim.calibration_set, sim.truth, sim.joints_calibration, sim.T_st_calibration, cfg.pixel_sigma
+    )
+    return DemoRuns(cfg, sim, res, res_two_way, val, crb)
+
+
+def demo_summary(runs: DemoRuns, seed: int) -> dict[str, Any]:
+    """The summary dictionary of ``summary.json`` (``total_time_s`` still 0; the caller sets it)."""
+    cfg, sim, res = runs.config, runs.sim, runs.bundle
+    return {
+        "scenario": {
+            "seed": seed,
+            "joints": cfg.n_joints,
+            "calibration_snapshots": cfg.n_calibration,
+            "validation_snapshots": cfg.n_validation,
+            "pixel_noise_px": cfg.pixel_sigma,
+            "target": cfg.target.to_kalibr(),
+        },
+        "calibration": res.calibration.statistics,
+        "validation": runs.validation.calibration.statistics,
+        "ground_truth_errors": {
+            "bundle": {
+                "calibration": ground_truth_errors(res, sim.truth, sim.joints_calibration),
+                "validation": ground_truth_errors(runs.validation, sim.truth, sim.joints_validation),
+            },
+            "two_way": {"calibration": ground_truth_errors(runs.two_way, sim.truth, sim.joints_calibration)},
+        },
+        "two_way_statistics": runs.two_way.calibration.statistics,
+        "cramer_rao_bound": {
+            "T_ds_rotation_rms_rad": runs.crb.rotation_rms,
+            "T_ds_translation_rms_m": runs.crb.translation_rms,
+            "joint_offset_free_rms_rad": runs.crb.joint_rms.tolist(),
+        },
+        "paper": PAPER,
+        "observable_parameters": [
+            n for n, o in zip(res.calibration.names, res.calibration.observable, strict=True) if o
+        ],
+        "total_time_s": 0.0,
+    }
+
+
+def write_demo_figures(out_dir: Path, runs: DemoRuns, summary: dict[str, Any], report: bool) -> list[Path]:
+    """Save the bundle calibration's figures (with the ground truth); with ``report`` also ``report.pdf``."""
+    sim = runs.sim
+    summary_text = (
+        demo_table(summary) + "\n\n" + parameter_table(runs.bundle.calibration, sim.truth) if report else None
+    )
+    return write_calibration_outputs(
+        out_dir,
+        runs.bundle,
+        summary_text,
+        truth=sim.truth,
+        thetas_true=sim.joints_calibration,
+        target_points=sim.calibration_set.target_points,
+    )
+
+
+def print_demo_summary(out_dir: Path, summary: dict[str, Any], figure_paths: list[Path]) -> None:
+    """Print the demo table, the written files and the run times."""
+    print(demo_table(summary))
+    print(f"\nwrote {out_dir / 'calibration.yaml'}, {out_dir / 'joint_angles.csv'}, {out_dir / 'summary.json'}")
+    if figure_paths:
+        print("wrote " + ", ".join(str(p) for p in figure_paths))
+    print(f"total time {summary['total_time_s']:.1f} s (+ {summary['figures_time_s']:.1f} s for the figures)")
 
 
 def run_demo(
@@ -48,70 +140,16 @@ def run_demo(
     ``report`` also writes ``out_dir/report.pdf`` (the demo table, then the figures).
     """
     t0 = time.perf_counter()
-    cfg = SceneConfig(n_joints=n_joints)
-    sim = simulate_calibration(seed, cfg)
-    opts = CalibrationOptions(mode="encoderless", formulation="bundle")
-    res = calibrate(sim.calibration_set, sim.initial, opts)
-    res_two_way = calibrate(sim.calibration_set, sim.initial, replace(opts, formulation="two_way"))
-    val = calibrate(sim.validation_set, res.calibration, replace(opts, mode="validate"))
-    crb = cramer_rao_bound(
-        sim.calibration_set, sim.truth, sim.joints_calibration, sim.T_st_calibration, cfg.pixel_sigma
-    )
-
-    err_cal = _errors(res, sim.truth, sim.joints_calibration)
-    err_val = _errors(val, sim.truth, sim.joints_validation)
-    err_two_way = _errors(res_two_way, sim.truth, sim.joints_calibration)
-
-    summary: dict[str, Any] = {
-        "scenario": {
-            "seed": seed,
-            "joints": n_joints,
-            "calibration_snapshots": cfg.n_calibration,
-            "validation_snapshots": cfg.n_validation,
-            "pixel_noise_px": cfg.pixel_sigma,
-            "target": cfg.target.to_kalibr(),
-        },
-        "calibration": res.calibration.statistics,
-        "validation": val.calibration.statistics,
-        "ground_truth_errors": {
-            "bundle": {"calibration": err_cal, "validation": err_val},
-            "two_way": {"calibration": err_two_way},
-        },
-        "two_way_statistics": res_two_way.calibration.statistics,
-        "cramer_rao_bound": {
-            "T_ds_rotation_rms_rad": crb.rotation_rms,
-            "T_ds_translation_rms_m": crb.translation_rms,
-            "joint_offset_free_rms_rad": crb.joint_rms.tolist(),
-        },
-        "paper": PAPER,
-        "observable_parameters": [
-            n for n, o in zip(res.calibration.names, res.calibration.observable, strict=True) if o
-        ],
-        "total_time_s": 0.0,
-    }
+    runs = run_demo_calibrations(seed, n_joints)
+    summary = demo_summary(runs, seed)
     out_dir.mkdir(parents=True, exist_ok=True)
-    res.calibration.save(out_dir / "calibration.yaml")
-    write_joint_angles_csv(out_dir / "joint_angles.csv", res.timestamps_ns, res.joint_angles)
+    runs.bundle.calibration.save(out_dir / "calibration.yaml")
+    write_joint_angles_csv(out_dir / "joint_angles.csv", runs.bundle.timestamps_ns, runs.bundle.joint_angles)
     summary["total_time_s"] = time.perf_counter() - t0  # simulation, calibrations, evaluation (figures: below)
-    figure_paths = []
     t_fig = time.perf_counter()
-    if figures or report:
-        from dcc_fg.plots.output import write_calibration_outputs
-
-        figure_paths = write_calibration_outputs(
-            out_dir,
-            res,
-            demo_table(summary) + "\n\n" + parameter_table(res.calibration, sim.truth) if report else None,
-            truth=sim.truth,
-            thetas_true=sim.joints_calibration,
-            target_points=sim.calibration_set.target_points,
-        )
+    figure_paths = write_demo_figures(out_dir, runs, summary, report) if figures or report else []
     summary["figures_time_s"] = time.perf_counter() - t_fig
     write_json(out_dir / "summary.json", summary)
     if verbose:
-        print(demo_table(summary))
-        print(f"\nwrote {out_dir / 'calibration.yaml'}, {out_dir / 'joint_angles.csv'}, {out_dir / 'summary.json'}")
-        if figure_paths:
-            print("wrote " + ", ".join(str(p) for p in figure_paths))
-        print(f"total time {summary['total_time_s']:.1f} s (+ {summary['figures_time_s']:.1f} s for the figures)")
+        print_demo_summary(out_dir, summary, figure_paths)
     return summary

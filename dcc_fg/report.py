@@ -1,10 +1,27 @@
-"""Text summary tables, and the figures of :mod:`dcc_fg.plots` re-exported."""
+"""Text summary tables, and the figures of :mod:`dcc_fg.plots` re-exported so callers find them with the tables."""
 
 from __future__ import annotations
 
 from typing import Any
 
 import numpy as np
+
+from dcc_fg.model import GimbalCalibration
+from dcc_fg.plots import (
+    calibration_figures,
+    chain_figure,
+    coverage_figure,
+    error_over_distance_figure,
+    joint_angles_figure,
+    parameter_figure,
+    residual_figure,
+    save_figure,
+    snapshot_error_figure,
+    trajectory_topview_figure,
+    write_calibration_outputs,
+    write_report_pdf,
+)
+from dcc_fg.plots.calibration import parameter_status
 
 
 def _fmt(x: float | None) -> str:
@@ -53,38 +70,43 @@ def calibration_table(stats: dict[str, Any]) -> str:
     return _rows(head, ["camera", "corners", "mean |e| px", "std px", "RMS/axis px", "max px"], rows)
 
 
-def demo_table(s: dict[str, Any]) -> str:
-    """The demo's comparison with the paper's Tables I-III."""
+DEMO_COLUMNS = ["", "paper cal", "dcc-fg cal", "paper val", "dcc-fg val"]
+
+
+def demo_reprojection_table(s: dict[str, Any]) -> str:
+    """Table I: mean, std and RMS per axis of the reprojection error (px), calibration and validation sets."""
     p = s["paper"]
     cal_rep = s["calibration"]["reprojection_error_px"]["all"]
     val_rep = s["validation"]["reprojection_error_px"]["all"]
     n_cal = s["scenario"]["calibration_snapshots"]
     n_val = s["scenario"]["validation_snapshots"]
-    out = []
-    out.append(
-        _rows(
-            "Table I - reprojection error (simulated 2-DOF gimbal, 0.4 px noise)",
-            ["", "paper cal", "dcc-fg cal", "paper val", "dcc-fg val"],
+    return _rows(
+        "Table I - reprojection error (simulated 2-DOF gimbal, 0.4 px noise)",
+        DEMO_COLUMNS,
+        [
+            ["images", n_cal, n_cal, n_val, n_val],
             [
-                ["images", n_cal, n_cal, n_val, n_val],
-                [
-                    "mean |e| (px)",
-                    _fmt(p["reprojection_mean_px"]["calibration"]),
-                    _fmt(cal_rep["mean"]),
-                    _fmt(p["reprojection_mean_px"]["validation"]),
-                    _fmt(val_rep["mean"]),
-                ],
-                [
-                    "std |e| (px)",
-                    _fmt(p["reprojection_std_px"]["calibration"]),
-                    _fmt(cal_rep["std"]),
-                    _fmt(p["reprojection_std_px"]["validation"]),
-                    _fmt(val_rep["std"]),
-                ],
-                ["RMS per axis (px)", "-", _fmt(cal_rep["rms_per_axis"]), "-", _fmt(val_rep["rms_per_axis"])],
+                "mean |e| (px)",
+                _fmt(p["reprojection_mean_px"]["calibration"]),
+                _fmt(cal_rep["mean"]),
+                _fmt(p["reprojection_mean_px"]["validation"]),
+                _fmt(val_rep["mean"]),
             ],
-        )
+            [
+                "std |e| (px)",
+                _fmt(p["reprojection_std_px"]["calibration"]),
+                _fmt(cal_rep["std"]),
+                _fmt(p["reprojection_std_px"]["validation"]),
+                _fmt(val_rep["std"]),
+            ],
+            ["RMS per axis (px)", "-", _fmt(cal_rep["rms_per_axis"]), "-", _fmt(val_rep["rms_per_axis"])],
+        ],
     )
+
+
+def demo_joint_error_table(s: dict[str, Any]) -> str:
+    """Table II: offset-free joint-angle errors (rad) of the bundle calibration, and their RMS beside the CRB."""
+    p = s["paper"]
     gt = s["ground_truth_errors"]["bundle"]
     rows = []
     for j, (jc, jv) in enumerate(
@@ -96,76 +118,74 @@ def demo_table(s: dict[str, Any]) -> str:
         sv = p["joint_std_rad"]["validation"][j] if j < 2 else None
         rows.append([f"joint {j + 1} mean |err|", _fmt(pc), _fmt(jc["mean"]), _fmt(pv), _fmt(jv["mean"])])
         rows.append([f"joint {j + 1} std", _fmt(sc), _fmt(jc["std"]), _fmt(sv), _fmt(jv["std"])])
-    crb = s["cramer_rao_bound"]
-    for j, b in enumerate(crb["joint_offset_free_rms_rad"]):
-        rows.append(
-            [
-                f"joint {j + 1} RMS / CRB",
-                "-",
-                f"{_fmt(gt['calibration']['joint_offset_free_rad'][j]['rms'])} / {_fmt(b)}",
-                "-",
-                "-",
-            ]
-        )
-    out.append(
-        _rows(
-            "Table II - joint-angle errors (rad, constant offset per joint removed)",
-            ["", "paper cal", "dcc-fg cal", "paper val", "dcc-fg val"],
-            rows,
-        )
-    )
+    for j, b in enumerate(s["cramer_rao_bound"]["joint_offset_free_rms_rad"]):
+        rms = gt["calibration"]["joint_offset_free_rad"][j]["rms"]
+        rows.append([f"joint {j + 1} RMS / CRB", "-", f"{_fmt(rms)} / {_fmt(b)}", "-", "-"])
+    return _rows("Table II - joint-angle errors (rad, constant offset per joint removed)", DEMO_COLUMNS, rows)
 
-    kin = gt["calibration"]["kinematic_errors_observable"]
+
+def demo_kinematic_error_table(s: dict[str, Any]) -> str:
+    """Table III: mean and std of the absolute errors of the observable translation (m) and rotation (rad)
+    kinematic parameters of the bundle calibration."""
+    p = s["paper"]
+    kin = s["ground_truth_errors"]["bundle"]["calibration"]["kinematic_errors_observable"]
     trans = [abs(v) for k, v in kin.items() if k.split(".")[1] in ("tx", "ty", "tz", "d", "a")]
     rot = [abs(v) for k, v in kin.items() if k.split(".")[1] in ("rx", "ry", "rz", "alpha")]
-    out.append(
-        _rows(
-            "Table III - kinematic parameter errors (observable parameters only: " + ", ".join(kin) + ")",
-            ["", "paper", "dcc-fg"],
+    return _rows(
+        "Table III - kinematic parameter errors (observable parameters only: " + ", ".join(kin) + ")",
+        ["", "paper", "dcc-fg"],
+        [
             [
-                [
-                    "translation mean |err| (m)",
-                    _fmt(p["translation_param_mean_m"]),
-                    _fmt(float(np.mean(trans)) if trans else None),
-                ],
-                [
-                    "translation std (m)",
-                    _fmt(p["translation_param_std_m"]),
-                    _fmt(float(np.std(trans)) if trans else None),
-                ],
-                [
-                    "rotation mean |err| (rad)",
-                    _fmt(p["rotation_param_mean_rad"]),
-                    _fmt(float(np.mean(rot)) if rot else None),
-                ],
-                ["rotation std (rad)", _fmt(p["rotation_param_std_rad"]), _fmt(float(np.std(rot)) if rot else None)],
+                "translation mean |err| (m)",
+                _fmt(p["translation_param_mean_m"]),
+                _fmt(float(np.mean(trans)) if trans else None),
             ],
-        )
+            [
+                "translation std (m)",
+                _fmt(p["translation_param_std_m"]),
+                _fmt(float(np.std(trans)) if trans else None),
+            ],
+            [
+                "rotation mean |err| (rad)",
+                _fmt(p["rotation_param_mean_rad"]),
+                _fmt(float(np.mean(rot)) if rot else None),
+            ],
+            ["rotation std (rad)", _fmt(p["rotation_param_std_rad"]), _fmt(float(np.std(rot)) if rot else None)],
+        ],
     )
+
+
+def demo_T_ds_error_table(s: dict[str, Any]) -> str:
+    """RMS of the gauge-invariant T_ds(theta_i) errors (rad, m): bundle and two-way calibration, validation, CRB."""
+    gt = s["ground_truth_errors"]["bundle"]
     tw = s["ground_truth_errors"]["two_way"]["calibration"]
-    out.append(
-        _rows(
-            "Gauge-invariant errors: T_ds(theta_i) per snapshot against ground truth",
-            ["", "bundle cal", "two-way cal", "bundle val", "CRB (cal)"],
+    crb = s["cramer_rao_bound"]
+    return _rows(
+        "Gauge-invariant errors: T_ds(theta_i) per snapshot against ground truth",
+        ["", "bundle cal", "two-way cal", "bundle val", "CRB (cal)"],
+        [
             [
-                [
-                    "rotation RMS (rad)",
-                    _fmt(gt["calibration"]["T_ds_rotation_rad"]["rms"]),
-                    _fmt(tw["T_ds_rotation_rad"]["rms"]),
-                    _fmt(gt["validation"]["T_ds_rotation_rad"]["rms"]),
-                    _fmt(crb["T_ds_rotation_rms_rad"]),
-                ],
-                [
-                    "translation RMS (m)",
-                    _fmt(gt["calibration"]["T_ds_translation_m"]["rms"]),
-                    _fmt(tw["T_ds_translation_m"]["rms"]),
-                    _fmt(gt["validation"]["T_ds_translation_m"]["rms"]),
-                    _fmt(crb["T_ds_translation_rms_m"]),
-                ],
+                "rotation RMS (rad)",
+                _fmt(gt["calibration"]["T_ds_rotation_rad"]["rms"]),
+                _fmt(tw["T_ds_rotation_rad"]["rms"]),
+                _fmt(gt["validation"]["T_ds_rotation_rad"]["rms"]),
+                _fmt(crb["T_ds_rotation_rms_rad"]),
             ],
-        )
+            [
+                "translation RMS (m)",
+                _fmt(gt["calibration"]["T_ds_translation_m"]["rms"]),
+                _fmt(tw["T_ds_translation_m"]["rms"]),
+                _fmt(gt["validation"]["T_ds_translation_m"]["rms"]),
+                _fmt(crb["T_ds_translation_rms_m"]),
+            ],
+        ],
     )
-    return "\n\n".join(out)
+
+
+def demo_table(s: dict[str, Any]) -> str:
+    """The demo's comparison with the paper's Tables I-III (``s``: the demo's ``summary.json`` dictionary)."""
+    tables = (demo_reprojection_table, demo_joint_error_table, demo_kinematic_error_table, demo_T_ds_error_table)
+    return "\n\n".join(table(s) for table in tables)
 
 
 def run_summary_table(stats: dict[str, Any]) -> str:
@@ -210,11 +230,9 @@ def run_summary_table(stats: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def parameter_table(cal: Any, truth: Any = None) -> str:
+def parameter_table(cal: GimbalCalibration, truth: GimbalCalibration | None = None) -> str:
     """Kinematic parameters of a ``GimbalCalibration``: status (observable / gauge-fixed / unobservable),
     estimate, 1-sigma and, when given, the truth (radians and metres)."""
-    from dcc_fg.plots.calibration import parameter_status
-
     std = cal.kin_std if cal.kin_std is not None else np.full(len(cal.kin), np.nan)
     header = ["parameter", "status", "estimate", "1-sigma"] + (["truth"] if truth is not None else [])
     rows = []
@@ -225,22 +243,6 @@ def parameter_table(cal: Any, truth: Any = None) -> str:
         rows.append(row)
     return _rows("Kinematic parameters (rad, m)", header, rows)
 
-
-# Figures (matplotlib, pyplot-free) live in dcc_fg.plots; re-exported here so callers find them with the tables.
-from dcc_fg.plots import (  # noqa: E402
-    calibration_figures,
-    chain_figure,
-    coverage_figure,
-    error_over_distance_figure,
-    joint_angles_figure,
-    parameter_figure,
-    residual_figure,
-    save_figure,
-    snapshot_error_figure,
-    trajectory_topview_figure,
-    write_calibration_outputs,
-    write_report_pdf,
-)
 
 __all__ = [
     "calibration_figures",

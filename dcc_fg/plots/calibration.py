@@ -8,20 +8,21 @@ and camera; joint angles in radians; ``T_ds`` covariances in gtsam Pose3 tangent
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-from typing import TYPE_CHECKING
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 
 import numpy as np
+from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 from matplotlib.patches import Circle
 from numpy.typing import NDArray
 
+from dcc_fg.calibrate import CalibrationResult
+from dcc_fg.model import GimbalCalibration
+from dcc_fg.plots.chain3d import chain_figure
 from dcc_fg.plots.common import CAMERA_COLORS, new_figure
+from dcc_fg.studies.calibration_accuracy import T_ds_errors, offset_free_joint_errors
 from factors import chain
-
-if TYPE_CHECKING:
-    from dcc_fg.calibrate import CalibrationResult
-    from dcc_fg.model import GimbalCalibration
 
 FloatArray = NDArray[np.float64]
 CAMERAS = ("static", "dynamic")
@@ -130,6 +131,95 @@ def _tds_sigma(result: CalibrationResult) -> tuple[FloatArray, FloatArray] | Non
     return rot, tra
 
 
+def draw_snapshot_rms_panel(ax: Axes, result: CalibrationResult) -> None:
+    """RMS per axis of each snapshot's residuals in each camera (pixels) and the pixel noise sigma."""
+    idx = np.arange(len(result.joint_angles))
+    for cam in CAMERAS:
+        ax.plot(idx, snapshot_rms(result, cam), "o", ms=4, color=CAMERA_COLORS[cam], label=f"{cam} camera")
+    sigma, source = noise_sigma(result)
+    ax.axhline(sigma, color="k", ls="--", lw=1, label=f"σ = {sigma:.3f} px ({source})")
+    ax.set_ylabel("RMS/axis (px)")
+    ax.set_title("Reprojection residual per snapshot")
+    ax.legend(fontsize=8, ncol=3, loc="upper right")
+    ax.set_ylim(0, 1.35 * np.nanmax([*snapshot_rms(result, "static"), *snapshot_rms(result, "dynamic"), sigma]))
+
+
+def draw_T_ds_error_panels(
+    ax_rotation: Axes,
+    ax_translation: Axes,
+    T_ds_error: FloatArray | None,
+    T_ds_sigma: tuple[FloatArray, FloatArray] | None,
+) -> None:
+    """Rotation (mrad) and translation (mm) error norms of ``T_ds(theta_i)`` per snapshot, and the reported 1 sigma.
+
+    ``T_ds_error``: (K, 6) Pose3 tangent errors ``[omega, v]`` against the truth, or None;
+    ``T_ds_sigma``: per snapshot ``sqrt(trace)`` of the rotation and translation covariance blocks, or None.
+    """
+    panels = (("rotation", slice(0, 3), 1e3, "mrad"), ("translation", slice(3, 6), 1e3, "mm"))
+    for r, (ax, (name, sl, scale, unit)) in enumerate(zip((ax_rotation, ax_translation), panels, strict=True)):
+        if T_ds_error is not None:
+            e = np.linalg.norm(T_ds_error[:, sl], axis=1) * scale
+            ax.plot(
+                np.arange(len(e)),
+                e,
+                "o",
+                ms=4,
+                color="tab:green",
+                label=f"|error| (RMS {np.sqrt(np.mean(e**2)):.3g} {unit})",
+            )
+        if T_ds_sigma is not None:
+            s = T_ds_sigma[r] * scale
+            ax.step(
+                np.arange(len(s)),
+                s,
+                where="mid",
+                color="k",
+                lw=1,
+                label=f"reported 1σ √tr Σ (RMS {np.sqrt(np.mean(s**2)):.3g})",
+            )
+        if T_ds_error is None and T_ds_sigma is None:
+            ax.text(0.5, 0.5, "no ground truth and no covariance", ha="center", va="center", transform=ax.transAxes)
+        ax.set_ylabel(f"{name} ({unit})")
+        top = [np.max(e)] if T_ds_error is not None else []
+        top += [np.max(T_ds_sigma[r] * scale)] if T_ds_sigma is not None else []
+        ax.set_ylim(0, 1.35 * max(top) if top else 1.0)
+        title = "error against ground truth" if T_ds_error is not None else "uncertainty"
+        ax.set_title(f"T_ds(θ_i) {name} " + title)
+        if T_ds_error is not None or T_ds_sigma is not None:
+            ax.legend(fontsize=8, loc="upper right")
+
+
+def draw_joint_error_panel(ax: Axes, result: CalibrationResult, thetas_true: FloatArray | None) -> None:
+    """Offset-free joint-angle errors (mrad) with +-1 sigma error bars, or without ``thetas_true`` the 1 sigma."""
+    L = result.calibration.n_joints
+    idx = np.arange(len(result.joint_angles))
+    std = result.joint_angle_std
+    if thetas_true is not None:
+        je = offset_free_joint_errors(thetas_true, result.joint_angles) * 1e3
+        for j in range(L):
+            ax.errorbar(
+                idx + (j - (L - 1) / 2) * 0.15,
+                je[:, j],
+                yerr=std[:, j] * 1e3,
+                fmt="o",
+                ms=3,
+                capsize=2,
+                lw=0.8,
+                label=f"θ_{j + 1} (RMS {np.sqrt(np.mean(je[:, j] ** 2)):.3g} mrad)",
+            )
+        ax.axhline(0.0, color="k", lw=0.8)
+        span = float(np.nanmax(np.abs(je) + np.nan_to_num(std) * 1e3))
+        ax.set_ylim(-1.1 * span, 1.5 * span)
+        ax.set_title("Joint-angle error (constant offset per joint removed) ± reported 1σ")
+    else:
+        for j in range(L):
+            ax.plot(idx, std[:, j] * 1e3, "o", ms=3, label=f"θ_{j + 1}")
+        ax.set_title("Joint-angle reported 1σ")
+        ax.set_ylim(bottom=0)
+    ax.set_ylabel("mrad")
+    ax.legend(fontsize=8, ncol=min(L, 3), loc="upper right")
+
+
 def snapshot_error_figure(
     result: CalibrationResult,
     truth: GimbalCalibration | None = None,
@@ -143,73 +233,16 @@ def snapshot_error_figure(
     estimator ``E|e|^2 = trace(Sigma)``); without truth only the reported 1-sigma is drawn;
     (4) offset-free joint-angle errors with +-1 sigma error bars (or, without truth, the 1-sigma).
     """
-    from dcc_fg.studies.calibration_accuracy import T_ds_errors, offset_free_joint_errors
-
     have_truth = truth is not None and thetas_true is not None
     L = result.calibration.n_joints
-    K = len(result.joint_angles)
-    idx = np.arange(K)
-    sig = _tds_sigma(result)
     rows = 3 + (1 if L > 0 else 0)
     fig = new_figure(10.0, 2.4 * rows + 0.6)
     axes = fig.subplots(rows, 1, sharex=True)
-    ax = axes[0]
-    for cam in CAMERAS:
-        ax.plot(idx, snapshot_rms(result, cam), "o", ms=4, color=CAMERA_COLORS[cam], label=f"{cam} camera")
-    sigma, source = noise_sigma(result)
-    ax.axhline(sigma, color="k", ls="--", lw=1, label=f"σ = {sigma:.3f} px ({source})")
-    ax.set_ylabel("RMS/axis (px)")
-    ax.set_title("Reprojection residual per snapshot")
-    ax.legend(fontsize=8, ncol=3, loc="upper right")
-    ax.set_ylim(0, 1.35 * np.nanmax([*snapshot_rms(result, "static"), *snapshot_rms(result, "dynamic"), sigma]))
-
+    draw_snapshot_rms_panel(axes[0], result)
     err = T_ds_errors(truth, thetas_true, result.calibration, result.joint_angles) if have_truth else None
-    for r, (name, sl, scale, unit) in enumerate(
-        (("rotation", slice(0, 3), 1e3, "mrad"), ("translation", slice(3, 6), 1e3, "mm"))
-    ):
-        ax = axes[1 + r]
-        if err is not None:
-            e = np.linalg.norm(err[:, sl], axis=1) * scale
-            ax.plot(idx, e, "o", ms=4, color="tab:green", label=f"|error| (RMS {np.sqrt(np.mean(e**2)):.3g} {unit})")
-        if sig is not None:
-            s = sig[r] * scale
-            ax.step(idx, s, where="mid", color="k", lw=1, label=f"reported 1σ √tr Σ (RMS {np.sqrt(np.mean(s**2)):.3g})")
-        if err is None and sig is None:
-            ax.text(0.5, 0.5, "no ground truth and no covariance", ha="center", va="center", transform=ax.transAxes)
-        ax.set_ylabel(f"{name} ({unit})")
-        top = [np.max(e)] if err is not None else []
-        top += [np.max(sig[r] * scale)] if sig is not None else []
-        ax.set_ylim(0, 1.35 * max(top) if top else 1.0)
-        ax.set_title(f"T_ds(θ_i) {name} " + ("error against ground truth" if err is not None else "uncertainty"))
-        if err is not None or sig is not None:
-            ax.legend(fontsize=8, loc="upper right")
+    draw_T_ds_error_panels(axes[1], axes[2], err, _tds_sigma(result))
     if L > 0:
-        ax = axes[3]
-        std = result.joint_angle_std
-        if have_truth:
-            je = offset_free_joint_errors(thetas_true, result.joint_angles) * 1e3
-            for j in range(L):
-                ax.errorbar(
-                    idx + (j - (L - 1) / 2) * 0.15,
-                    je[:, j],
-                    yerr=std[:, j] * 1e3,
-                    fmt="o",
-                    ms=3,
-                    capsize=2,
-                    lw=0.8,
-                    label=f"θ_{j + 1} (RMS {np.sqrt(np.mean(je[:, j] ** 2)):.3g} mrad)",
-                )
-            ax.axhline(0.0, color="k", lw=0.8)
-            span = float(np.nanmax(np.abs(je) + np.nan_to_num(std) * 1e3))
-            ax.set_ylim(-1.1 * span, 1.5 * span)
-            ax.set_title("Joint-angle error (constant offset per joint removed) ± reported 1σ")
-        else:
-            for j in range(L):
-                ax.plot(idx, std[:, j] * 1e3, "o", ms=3, label=f"θ_{j + 1}")
-            ax.set_title("Joint-angle reported 1σ")
-            ax.set_ylim(bottom=0)
-        ax.set_ylabel("mrad")
-        ax.legend(fontsize=8, ncol=min(L, 3), loc="upper right")
+        draw_joint_error_panel(axes[3], result, thetas_true if have_truth else None)
     axes[-1].set_xlabel("snapshot")
     return fig
 
@@ -284,6 +317,101 @@ STATUS_STYLE = {
 }
 
 
+@dataclass(frozen=True)
+class ParameterGroup:
+    """One row of :func:`parameter_figure`: the angles or the lengths among the kinematic parameters.
+
+    ``to_display`` converts values (rad or m) to ``unit`` (deg or mm); errors are multiplied by
+    ``error_scale`` to ``error_unit`` (mrad or mm).
+    """
+
+    name: str
+    indices: NDArray[np.int64]
+    to_display: Callable[[FloatArray], FloatArray]
+    unit: str
+    error_scale: float
+    error_unit: str
+
+
+def parameter_groups(cal: GimbalCalibration) -> list[ParameterGroup]:
+    """The angle and the length parameters of ``cal`` (indices into ``cal.kin``)."""
+    is_angle = chain.kin_is_angle(cal.n_joints)
+    return [
+        ParameterGroup("angles", np.flatnonzero(is_angle), np.degrees, "deg", 1e3, "mrad"),
+        ParameterGroup("lengths", np.flatnonzero(~is_angle), lambda v: v * 1e3, "mm", 1e3, "mm"),
+    ]
+
+
+def draw_parameter_markers(
+    ax_value: Axes,
+    ax_error: Axes,
+    cal: GimbalCalibration,
+    truth: GimbalCalibration | None,
+    group: ParameterGroup,
+    status: list[str],
+    std: FloatArray,
+) -> None:
+    """Per observability status: values +-1 sigma (left), estimate - truth +-1 sigma or the 1 sigma (right)."""
+    sel = group.indices
+    y = np.arange(len(sel))[::-1]
+    for st, style in STATUS_STYLE.items():
+        m = np.array([status[k] == st for k in sel], dtype=bool)
+        if not m.any():
+            continue
+        k = sel[m]
+        val = group.to_display(cal.kin[k])
+        err = np.where(np.isfinite(std[k]), group.to_display(np.nan_to_num(std[k])), 0.0)
+        ax_value.errorbar(
+            val, y[m], xerr=err, fmt=style["fmt"], color=style["color"], ms=5, capsize=3, label=STATUS_LABEL[st]
+        )
+        if truth is not None:
+            d = cal.kin[k] - truth.kin[k]
+            d = _wrap(d) if group.unit == "deg" else d
+            ax_error.errorbar(
+                d * group.error_scale,
+                y[m],
+                xerr=np.nan_to_num(std[k]) * group.error_scale,
+                fmt=style["fmt"],
+                color=style["color"],
+                ms=5,
+                capsize=3,
+                label=STATUS_LABEL[st],
+            )
+        else:
+            s = np.where(np.isfinite(std[k]), std[k] * group.error_scale, 0.0)
+            ax_error.errorbar(s, y[m], fmt=style["fmt"], color=style["color"], ms=5, label=STATUS_LABEL[st])
+
+
+def annotate_parameter_errors(
+    ax_error: Axes, truth: GimbalCalibration | None, group: ParameterGroup, status: list[str], std: FloatArray
+) -> None:
+    """Error axis: a note when no parameter has a 1 sigma; with the truth a symlog scale and the zero line."""
+    sel = group.indices
+    obs_std = np.array([std[k] for k in sel if status[k] == "observable" and np.isfinite(std[k])])
+    if not np.isfinite(std[sel]).any():
+        ax_error.text(
+            0.5,
+            0.5,
+            "no 1σ reported: every parameter here is gauge-fixed or\nmixes with a gauge direction "
+            "(see the T_ds uncertainty instead)",
+            ha="center",
+            va="center",
+            fontsize=8,
+            transform=ax_error.transAxes,
+            bbox={"facecolor": "white", "alpha": 0.85, "edgecolor": "0.7"},
+        )
+    if truth is not None:
+        # gauge-fixed / unobservable errors can be orders of magnitude larger than the observable ones:
+        # linear inside +-4 sigma of the observable parameters, logarithmic outside
+        lin = 4.0 * float(obs_std.max()) * group.error_scale if obs_std.size else 1.0
+        ax_error.set_xscale("symlog", linthresh=lin, linscale=2.0)
+        ax_error.axvspan(-lin, lin, color="0.93", zorder=0)
+        ax_error.axvline(0.0, color="k", lw=0.8)
+        ax_error.set_xlabel(f"estimate - truth ({group.error_unit}), ±1σ")
+    else:
+        ax_error.set_xlabel(f"reported 1σ ({group.error_unit}; 0 = not estimated)")
+
+
 def parameter_figure(cal: GimbalCalibration, truth: GimbalCalibration | None = None) -> Figure:
     """Kinematic parameter estimates with their 1-sigma, by observability status, and the truth when known.
 
@@ -292,77 +420,25 @@ def parameter_figure(cal: GimbalCalibration, truth: GimbalCalibration | None = N
     is given, otherwise the reported 1 sigma. Marker: circle observable, square gauge-fixed (held at
     its initial value), triangle unobservable (no standard deviation).
     """
-    names = cal.names
-    is_angle = chain.kin_is_angle(cal.n_joints)
     status = parameter_status(cal)
     std = cal.kin_std if cal.kin_std is not None else np.full(len(cal.kin), np.nan)
-    groups = [
-        ("angles", np.flatnonzero(is_angle), np.degrees, "deg", 1e3, "mrad"),
-        ("lengths", np.flatnonzero(~is_angle), lambda v: v * 1e3, "mm", 1e3, "mm"),
-    ]
-    n_max = max(len(g[1]) for g in groups)
+    groups = parameter_groups(cal)
+    n_max = max(len(g.indices) for g in groups)
     fig = new_figure(11.0, 0.28 * n_max * 2 + 2.0)
-    axes = fig.subplots(2, 2, gridspec_kw={"height_ratios": [len(g[1]) for g in groups]})
-    for r, (gname, sel, conv, unit, dscale, dunit) in enumerate(groups):
+    axes = fig.subplots(2, 2, gridspec_kw={"height_ratios": [len(g.indices) for g in groups]})
+    for r, group in enumerate(groups):
         ax_v, ax_d = axes[r, 0], axes[r, 1]
-        y = np.arange(len(sel))[::-1]
-        for st, style in STATUS_STYLE.items():
-            m = np.array([status[k] == st for k in sel], dtype=bool)
-            if not m.any():
-                continue
-            k = sel[m]
-            val = conv(cal.kin[k])
-            err = np.where(np.isfinite(std[k]), conv(np.nan_to_num(std[k])), 0.0)
-            ax_v.errorbar(
-                val, y[m], xerr=err, fmt=style["fmt"], color=style["color"], ms=5, capsize=3, label=STATUS_LABEL[st]
-            )
-            if truth is not None:
-                d = cal.kin[k] - truth.kin[k]
-                d = _wrap(d) if unit == "deg" else d
-                ax_d.errorbar(
-                    d * dscale,
-                    y[m],
-                    xerr=np.nan_to_num(std[k]) * dscale,
-                    fmt=style["fmt"],
-                    color=style["color"],
-                    ms=5,
-                    capsize=3,
-                    label=STATUS_LABEL[st],
-                )
-            else:
-                s = np.where(np.isfinite(std[k]), std[k] * dscale, 0.0)
-                ax_d.errorbar(s, y[m], fmt=style["fmt"], color=style["color"], ms=5, label=STATUS_LABEL[st])
-        obs_std = np.array([std[k] for k in sel if status[k] == "observable" and np.isfinite(std[k])])
-        if not np.isfinite(std[sel]).any():
-            ax_d.text(
-                0.5,
-                0.5,
-                "no 1σ reported: every parameter here is gauge-fixed or\nmixes with a gauge direction "
-                "(see the T_ds uncertainty instead)",
-                ha="center",
-                va="center",
-                fontsize=8,
-                transform=ax_d.transAxes,
-                bbox={"facecolor": "white", "alpha": 0.85, "edgecolor": "0.7"},
-            )
+        y = np.arange(len(group.indices))[::-1]
+        draw_parameter_markers(ax_v, ax_d, cal, truth, group, status, std)
+        annotate_parameter_errors(ax_d, truth, group, status, std)
         if truth is not None:
-            # gauge-fixed / unobservable errors can be orders of magnitude larger than the observable ones:
-            # linear inside +-4 sigma of the observable parameters, logarithmic outside
-            lin = 4.0 * float(obs_std.max()) * dscale if obs_std.size else 1.0
-            ax_d.set_xscale("symlog", linthresh=lin, linscale=2.0)
-            ax_d.axvspan(-lin, lin, color="0.93", zorder=0)
-        if truth is not None:
-            ax_v.plot(conv(truth.kin[sel]), y, "x", color="k", ms=7, label="truth")
-            ax_d.axvline(0.0, color="k", lw=0.8)
-            ax_d.set_xlabel(f"estimate - truth ({dunit}), ±1σ")
-        else:
-            ax_d.set_xlabel(f"reported 1σ ({dunit}; 0 = not estimated)")
+            ax_v.plot(group.to_display(truth.kin[group.indices]), y, "x", color="k", ms=7, label="truth")
         for ax in (ax_v, ax_d):
-            ax.set_yticks(y, [names[k] for k in sel], fontsize=8)
+            ax.set_yticks(y, [cal.names[k] for k in group.indices], fontsize=8)
             ax.grid(axis="x", alpha=0.3)
-        ax_v.set_xlabel(f"value ({unit}), ±1σ")
-        ax_v.set_title(f"{gname}")
-        ax_d.set_title(f"{gname}: " + ("error against truth" if truth is not None else "standard deviation"))
+        ax_v.set_xlabel(f"value ({group.unit}), ±1σ")
+        ax_v.set_title(f"{group.name}")
+        ax_d.set_title(f"{group.name}: " + ("error against truth" if truth is not None else "standard deviation"))
     handles, labels = axes[0, 0].get_legend_handles_labels()
     fig.legend(handles, labels, loc="outside lower center", ncol=len(labels), fontsize=8)
     fig.suptitle("Kinematic parameters (circle observable, square gauge-fixed, triangle unobservable)")
@@ -382,8 +458,6 @@ def calibration_figures(
     of the estimated range) and draws the target of that snapshot when ``target_points`` (target frame,
     metres) are given.
     """
-    from dcc_fg.plots.chain3d import chain_figure
-
     L = result.calibration.n_joints
     i_snap = 0
     if theta is None and L > 0 and len(result.joint_angles):

@@ -7,17 +7,14 @@ camera looking forward appears upright.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import numpy as np
 from matplotlib.figure import Figure
+from mpl_toolkits.mplot3d.axes3d import Axes3D
 from numpy.typing import NDArray
 
+from dcc_fg.model import GimbalCalibration
 from dcc_fg.plots.common import new_figure
 from factors import chain
-
-if TYPE_CHECKING:
-    from dcc_fg.model import GimbalCalibration
 
 FloatArray = NDArray[np.float64]
 AXIS_COLORS = ("tab:red", "tab:green", "tab:blue")
@@ -70,9 +67,11 @@ def _view(p: FloatArray) -> FloatArray:
     return np.stack([p[:, 0], p[:, 2], -p[:, 1]], axis=1)
 
 
-def _draw(
-    ax: object, cal: GimbalCalibration, theta: FloatArray, scale: float | None, target: FloatArray | None
+def draw_chain(
+    ax: Axes3D, cal: GimbalCalibration, theta: FloatArray, scale: float | None, target: FloatArray | None
 ) -> None:
+    """Draw the chain at ``theta`` (rad) on ``ax``: triads of length ``scale`` (m; None: from the chain's
+    extent), joint axes and, if given, the target corners ``target`` ((N, 3) in s, metres)."""
     frames = chain_frames(cal, theta)
     origins = np.array([T[:3, 3] for T in frames.values()])
     extent = float(np.ptp(origins, axis=0).max()) if len(origins) > 1 else 0.1
@@ -129,14 +128,14 @@ def chain_figure(
     with_target = T_st is not None and target_points is not None
     fig = new_figure(13.0 if with_target else 7.5, 6.5)
     ax = fig.add_subplot(1, 2 if with_target else 1, 1, projection="3d")
-    _draw(ax, cal, theta, axis_length, None)
+    draw_chain(ax, cal, theta, axis_length, None)
     th = ", ".join(f"{np.degrees(t):.1f}" for t in np.atleast_1d(theta))
     ax.set_title(f"Gimbal chain, θ = [{th}] deg" if cal.n_joints else "Rigid pair (L = 0)")
     if with_target:
         T = np.asarray(T_st, float)
         P = np.asarray(target_points, float) @ T[:3, :3].T + T[:3, 3]
         ax2 = fig.add_subplot(1, 2, 2, projection="3d")
-        _draw(ax2, cal, theta, None, P)
+        draw_chain(ax2, cal, theta, None, P)
         ax2.set_title("with the target of this snapshot")
     fig.suptitle("Estimated chain in the static-camera frame s (triads: x red, y green, z blue)")
     return fig

@@ -3,18 +3,15 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
 
+from dcc_fg.calibrate import CalibrationResult
+from dcc_fg.model import GimbalCalibration
 from dcc_fg.plots.calibration import calibration_figures
 from dcc_fg.plots.common import save_figure
 from dcc_fg.plots.pdf import write_report_pdf
-
-if TYPE_CHECKING:
-    from dcc_fg.calibrate import CalibrationResult
-    from dcc_fg.model import GimbalCalibration
 
 FIGURE_PREFIX = "calibration_"
 

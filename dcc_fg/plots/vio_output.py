@@ -19,6 +19,8 @@ from pathlib import Path
 import numpy as np
 from matplotlib.figure import Figure
 
+from dcc_fg.io.outputs import read_joint_angles_csv
+from dcc_fg.io.tum import read_tum
 from dcc_fg.plots.common import save_figure
 from dcc_fg.plots.vio import error_over_distance_figure, joint_angles_figure, trajectory_topview_figure
 from dcc_fg.vio.evaluate import (
@@ -51,9 +53,6 @@ def vio_output_figures(
     ``ground_truth`` is a TUM file, a bag (see :func:`dcc_fg.vio.evaluate.load_ground_truth`) or a
     loaded :class:`GroundTruth`; ``align`` as in :func:`dcc_fg.vio.evaluate.evaluate_output`.
     """
-    from dcc_fg.io.outputs import read_joint_angles_csv
-    from dcc_fg.io.tum import read_tum
-
     out_dir = Path(out_dir)
     mode, align = output_mode_and_alignment(out_dir, align)
     gt = ground_truth if isinstance(ground_truth, GroundTruth) else load_ground_truth(ground_truth)
