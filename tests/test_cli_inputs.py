@@ -12,6 +12,7 @@ from pathlib import Path
 import pytest
 import yaml
 
+import dcc_fg.commands.common
 from dcc_fg.cli import main
 from dcc_fg.io.bags import write_ros1_bag
 from dcc_fg.io.folders import ImageFolder
@@ -128,9 +129,7 @@ def test_progress_bar_on_a_terminal_unless_quiet(
 ) -> None:
     """The bar goes to stderr on a terminal; --quiet turns it off.  (A run that stops after detection:
     no pair has 1000 common corners, which also checks --min-common-points.)"""
-    import dcc_fg.pipeline
-
-    monkeypatch.setattr(dcc_fg.pipeline, "_stderr_is_terminal", lambda: True)
+    monkeypatch.setattr(dcc_fg.commands.common, "stderr_is_terminal", lambda: True)
     argv = _args(small, small.data, tmp_path / "out") + ["--min-common-points", "1000"] + (["--quiet"] if quiet else [])
     assert main(argv) == 2
     err = capsys.readouterr().err

@@ -1,0 +1,435 @@
+"""``dcc-fg calibrate`` / ``dcc-fg validate``: files in, calibration files out.
+
+Inputs (paths) stay on the command line; options come from :class:`CalibrateConfig` /
+:class:`ValidateConfig` (defaults, ``--config FILE``, then flags). Every ``summary.json`` records
+the version, the command line, the inputs and the effective options (see
+:func:`dcc_fg.util.provenance.run_record`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import io
+import json
+import logging
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from dcc_fg.auto_init import auto_initialize
+from dcc_fg.calibrate import CalibrationOptions, CalibrationResult, calibrate
+from dcc_fg.commands import common
+from dcc_fg.data import CalibrationDataset, common_corners
+from dcc_fg.io.camchain import CamchainEntry
+from dcc_fg.sources.dataset import load_dataset
+from dcc_fg.io.outputs import plain, write_text_atomic
+from dcc_fg.model import GimbalCalibration, load_calibration
+from dcc_fg.plots.output import write_calibration_outputs
+from dcc_fg.report import parameter_table, run_summary_table
+from dcc_fg.util.config import ConfigError
+
+log = logging.getLogger(__name__)
+
+#: Default of ``--min-common-points``: a snapshot needs this many target points seen by both cameras.
+MIN_COMMON_POINTS = 8
+
+
+@dataclass
+class ReaderOptions:
+    """How snapshots are read from the data.
+
+    ``sync_tolerance_ms``: largest time difference (milliseconds) between a static and a dynamic
+    image of one snapshot; ``min_common_points``: a snapshot is used only if both cameras see at least
+    this many of the same target corners; ``corners``: ``all`` detected corners of each camera or only
+    the ``common`` ones both cameras see.
+    """
+
+    sync_tolerance_ms: float = 5.0
+    min_common_points: int = MIN_COMMON_POINTS
+    corners: str = "all"
+
+    def __post_init__(self) -> None:
+        if self.corners not in ("all", "common"):
+            raise ValueError(f"corners must be all or common, got {self.corners!r}")
+        if not (np.isfinite(self.sync_tolerance_ms) and self.sync_tolerance_ms > 0):
+            raise ValueError(f"sync_tolerance_ms must be a positive number of ms, got {self.sync_tolerance_ms}")
+        if self.min_common_points < 1:
+            raise ValueError(f"min_common_points must be at least 1, got {self.min_common_points}")
+
+
+@dataclass
+class InitOptions:
+    """Initial values: ``method`` ``gimbal`` (the ``--gimbal`` YAML) or ``auto`` (per-snapshot PnP;
+    needs ``joints``); None picks gimbal when a ``--gimbal`` file is given, else auto."""
+
+    method: str | None = None
+    joints: int | None = None
+
+    def __post_init__(self) -> None:
+        if self.method not in (None, "auto", "gimbal"):
+            raise ValueError(f"method must be auto or gimbal, got {self.method!r}")
+        if self.joints is not None and not 0 <= self.joints <= 6:
+            raise ValueError(f"joints must be between 0 and 6, got {self.joints}")
+
+
+@dataclass
+class OutputOptions:
+    """``report``: also save the figures (``OUT/calibration_*.png``) and ``OUT/report.pdf``."""
+
+    report: bool = False
+
+
+@dataclass
+class CalibrateConfig:
+    """Every option of ``dcc-fg calibrate`` (sections of the ``--config`` YAML)."""
+
+    init: InitOptions = field(default_factory=InitOptions)
+    reader: ReaderOptions = field(default_factory=ReaderOptions)
+    solver: CalibrationOptions = field(default_factory=CalibrationOptions)
+    output: OutputOptions = field(default_factory=OutputOptions)
+
+
+@dataclass
+class ValidateConfig:
+    """Every option of ``dcc-fg validate`` (the kinematics are held at ``--calibration``)."""
+
+    reader: ReaderOptions = field(default_factory=ReaderOptions)
+    output: OutputOptions = field(default_factory=OutputOptions)
+
+
+@dataclass(frozen=True)
+class CalibrationInputs:
+    """Input files of a calibrate/validate run (``camchain`` may already be parsed entries)."""
+
+    data: str
+    camchain: Any = None
+    target: str | None = None
+    gimbal: str | None = None
+    calibration: str | None = None
+
+    def paths(self) -> dict[str, str | None]:
+        camchain = self.camchain if isinstance(self.camchain, str | Path) else None
+        return {
+            "data": self.data,
+            "camchain": camchain,
+            "target": self.target,
+            "gimbal": self.gimbal,
+            "calibration": self.calibration,
+        }
+
+
+def load_calibration_data(
+    inputs: CalibrationInputs, camchain: Any, reader: ReaderOptions, progress: bool, report: dict[str, Any]
+) -> CalibrationDataset:
+    """The CalibrationDataset of ``inputs.data``; ``reader.corners == 'common'`` keeps only the
+    corners both cameras of a snapshot see. ``report`` receives the reader's counts."""
+    report["min_common_points"] = reader.min_common_points
+    report["corners"] = reader.corners
+    dataset = load_dataset(
+        inputs.data,
+        camchain=camchain,
+        target=inputs.target,
+        tolerance_ns=int(round(reader.sync_tolerance_ms * 1e6)),
+        min_common_points=reader.min_common_points,
+        progress=progress,
+        report=report,
+    )
+    return common_corners(dataset) if reader.corners == "common" else dataset
+
+
+def T_ds_std_summary(result: CalibrationResult) -> dict[str, dict[str, float]] | None:
+    """Median / max over snapshots of the T_ds 1-sigma (rotation mrad, translation mm; root of the
+    trace of each 3x3 block of the Pose3 tangent covariance [omega, v])."""
+    cov = result.T_ds_covariances
+    if cov is None or len(cov) == 0 or not np.all(np.isfinite(cov)):
+        return None
+    rot = 1e3 * np.sqrt(np.trace(cov[:, :3, :3], axis1=1, axis2=2))
+    tra = 1e3 * np.sqrt(np.trace(cov[:, 3:, 3:], axis1=1, axis2=2))
+    return {
+        "rotation_mrad": {"median": float(np.median(rot)), "max": float(rot.max())},
+        "translation_mm": {"median": float(np.median(tra)), "max": float(tra.max())},
+    }
+
+
+def observability_summary(cal: GimbalCalibration) -> dict[str, Any] | None:
+    """Observable / gauge-fixed / gauge-dependent kinematic parameter names (see dcc_fg.calibrate)."""
+    if cal.observable is None:
+        return None
+    fixed = cal.gauge_fixed if cal.gauge_fixed is not None else np.zeros(len(cal.names), dtype=bool)
+    return {
+        "n_parameters": len(cal.names),
+        "n_observable": int(np.count_nonzero(cal.observable)),
+        "observable": [n for n, o in zip(cal.names, cal.observable, strict=True) if o],
+        "gauge_fixed": [n for n, f in zip(cal.names, fixed, strict=True) if f],
+        "gauge_dependent": [n for n, o, f in zip(cal.names, cal.observable, fixed, strict=True) if not o and not f],
+    }
+
+
+def joint_angles_csv_text(result: CalibrationResult) -> str:
+    """``timestamp_ns,theta_1..theta_L`` (integer ns, rad) of every snapshot."""
+    buf = io.StringIO()
+    L = result.joint_angles.shape[1] if result.joint_angles.ndim == 2 else 0
+    buf.write(",".join(["timestamp_ns"] + [f"theta_{j + 1}" for j in range(L)]) + "\n")
+    for t, th in zip(result.timestamps_ns, result.joint_angles, strict=True):
+        buf.write(",".join([str(int(t))] + [f"{x:.12g}" for x in th]) + "\n")
+    return buf.getvalue()
+
+
+def write_calibration_files(
+    out: Path, result: CalibrationResult, reader_report: dict[str, Any], provenance: dict[str, Any], quiet: bool
+) -> None:
+    """Write calibration.yaml, joint_angles.csv and summary.json: every text is serialized before the
+    first file is touched, each file is replaced atomically; then print the summary table."""
+    stats = result.calibration.statistics
+    if reader_report:
+        stats["input"] = dict(reader_report)
+    if result.options.mode != "validate":
+        obs = observability_summary(result.calibration)
+        if obs is not None:
+            stats["observability"] = obs
+    tds = T_ds_std_summary(result)
+    if tds is not None:
+        stats["T_ds_std"] = tds
+    cal_text = yaml.safe_dump(result.calibration.to_dict(), sort_keys=False)
+    csv_text = joint_angles_csv_text(result)
+    json_text = json.dumps(plain({**provenance, **stats}), indent=2) + "\n"
+    out.mkdir(parents=True, exist_ok=True)
+    write_text_atomic(out / "calibration.yaml", cal_text)
+    write_text_atomic(out / "joint_angles.csv", csv_text)
+    write_text_atomic(out / "summary.json", json_text)
+    if not quiet:
+        print(run_summary_table(stats))
+        print(f"wrote {out / 'calibration.yaml'}, {out / 'joint_angles.csv'}, {out / 'summary.json'}")
+
+
+def write_report(out: Path, result: CalibrationResult, data: CalibrationDataset, quiet: bool) -> None:
+    """The calibration figures as ``OUT/calibration_*.png`` and ``OUT/report.pdf``."""
+    text = run_summary_table(result.calibration.statistics) + "\n\n" + parameter_table(result.calibration)
+    paths = write_calibration_outputs(out, result, text, target_points=data.target_points)
+    if not quiet:
+        print("wrote " + ", ".join(str(p) for p in paths))
+
+
+def initial_values(
+    inputs: CalibrationInputs, init: InitOptions, mode: str, data: CalibrationDataset
+) -> tuple[GimbalCalibration, CalibrationDataset]:
+    """Initial kinematics from ``--gimbal`` (method ``gimbal``) or from the data (``auto``, the default
+    without ``--gimbal``; needs ``joints``). The automatic joint angles become the snapshots' starting
+    guesses (except in ``encoders`` mode, where the readings are kept)."""
+    method = init.method or ("gimbal" if inputs.gimbal else "auto")
+    if method == "gimbal":
+        if inputs.gimbal is None:
+            raise ValueError("--init gimbal needs --gimbal G.yaml")
+        return load_calibration(inputs.gimbal), data
+    if init.joints is None:
+        raise ValueError("--joints L is required when no --gimbal G.yaml is given (automatic initialization)")
+    initial, thetas, _ = auto_initialize(data, int(init.joints))
+    if mode == "encoders":
+        return initial, data
+    snaps = [replace(s, joints=t) for s, t in zip(data.snapshots, thetas, strict=True)]
+    return initial, replace(data, snapshots=snaps)
+
+
+def run_calibrate(
+    inputs: CalibrationInputs, out: Path, config: CalibrateConfig, progress: bool = False, quiet: bool = False
+) -> CalibrationResult:
+    """Calibrate from ``inputs`` with ``config``; writes ``out`` (see :func:`write_calibration_files`)."""
+    if config.solver.mode not in ("encoderless", "encoders"):
+        raise ConfigError(f"solver.mode must be encoderless or encoders for calibrate, got {config.solver.mode!r}")
+    report: dict[str, Any] = {}
+    data = load_calibration_data(inputs, inputs.camchain, config.reader, progress, report)
+    initial, data = initial_values(inputs, config.init, config.solver.mode, data)
+    result = calibrate(data, initial, config.solver)
+    write_calibration_files(out, result, report, common.record("calibrate", inputs.paths(), config), quiet)
+    if config.output.report:
+        write_report(out, result, data, quiet)
+    return result
+
+
+def validation_camchain(inputs: CalibrationInputs, cal: GimbalCalibration) -> Any:
+    """``--camchain``, or the intrinsics stored in the calibration (no image topics: folders only)."""
+    if inputs.camchain is not None:
+        return inputs.camchain
+    if cal.static_camera is None or cal.dynamic_camera is None:
+        raise ValueError(f"{inputs.calibration}: has no cam0/cam1 intrinsics; give --camchain")
+    return {"cam0": CamchainEntry(cal.static_camera), "cam1": CamchainEntry(cal.dynamic_camera)}
+
+
+def run_validate(
+    inputs: CalibrationInputs, out: Path, config: ValidateConfig, progress: bool = False, quiet: bool = False
+) -> CalibrationResult:
+    """Hold ``inputs.calibration`` fixed and estimate the joint angles of ``inputs.data``."""
+    if inputs.calibration is None:
+        raise ValueError("validate needs --calibration")
+    cal = load_calibration(inputs.calibration)
+    report: dict[str, Any] = {}
+    data = load_calibration_data(inputs, validation_camchain(inputs, cal), config.reader, progress, report)
+    result = calibrate(data, cal, CalibrationOptions(mode="validate"))
+    write_calibration_files(out, result, report, common.record("validate", inputs.paths(), config), quiet)
+    if config.output.report:
+        write_report(out, result, data, quiet)
+    return result
+
+
+# ----------------------------------------------------------------------------------------------
+# command line
+
+
+def add_reader_flags(p: argparse.ArgumentParser) -> None:
+    """Options shared by calibrate and validate: image pairing, snapshot selection, report."""
+    p.add_argument(
+        "--sync-tolerance",
+        dest="reader.sync_tolerance_ms",
+        type=float,
+        default=common.SUPPRESS,
+        metavar="MS",
+        help="largest time difference between a static and a dynamic image of one snapshot, milliseconds; frames "
+        "without a partner are reported (default 5)",
+    )
+    p.add_argument(
+        "--min-common-points",
+        dest="reader.min_common_points",
+        type=int,
+        default=common.SUPPRESS,
+        metavar="N",
+        help="use a snapshot only if both cameras see at least N of the same target corners (default 8)",
+    )
+    p.add_argument(
+        "--corners",
+        dest="reader.corners",
+        choices=["all", "common"],
+        default=common.SUPPRESS,
+        help="all: every detected corner of each camera (the maximum-likelihood use of the data, default); "
+        "common: only the corners both cameras of a snapshot see, as cv2.stereoCalibrate uses them. common helps "
+        "when the intrinsics fit the image periphery badly, where only one camera tends to see the board",
+    )
+    p.add_argument(
+        "--report",
+        dest="output.report",
+        action="store_true",
+        default=common.SUPPRESS,
+        help="also save the figures (OUT/calibration_*.png) and OUT/report.pdf",
+    )
+
+
+def add_solver_flags(c: argparse.ArgumentParser) -> None:
+    """The initial-value and solver options of ``calibrate``."""
+    c.add_argument(
+        "--joints", dest="init.joints", type=int, default=common.SUPPRESS, help="number of joints L when no --gimbal"
+    )
+    c.add_argument(
+        "--init",
+        dest="init.method",
+        choices=["auto", "gimbal"],
+        default=common.SUPPRESS,
+        help="initial values: 'gimbal' reads --gimbal; 'auto' estimates axes, DH links, mounts and joint "
+        "angles from per-snapshot PnP (needs --joints). Default: gimbal if --gimbal is given, else auto",
+    )
+    c.add_argument(
+        "--mode",
+        dest="solver.mode",
+        default=common.SUPPRESS,
+        choices=["encoderless", "encoders"],
+        help="joint angles unknown (encoderless, default) or read from joints.csv / JointState (encoders)",
+    )
+    c.add_argument(
+        "--formulation",
+        dest="solver.formulation",
+        default=common.SUPPRESS,
+        choices=["bundle", "two_way"],
+        help="maximum-likelihood bundle (default) or the paper's two-way error",
+    )
+    c.add_argument(
+        "--pixel-sigma",
+        dest="solver.pixel_sigma",
+        type=float,
+        default=common.SUPPRESS,
+        help="corner noise in pixels (1 sigma); default: estimated from the residuals",
+    )
+    c.add_argument(
+        "--robust",
+        dest="solver.robust",
+        choices=["huber", "cauchy"],
+        default=common.SUPPRESS,
+        help="per-corner robust loss (default: none, plain least squares)",
+    )
+    c.add_argument(
+        "--robust-k",
+        dest="solver.robust_k",
+        type=float,
+        default=common.SUPPRESS,
+        help="robust loss threshold in pixels (default 2)",
+    )
+
+
+def add_parsers(sub: Any, parent: argparse.ArgumentParser) -> None:
+    """Register ``calibrate`` and ``validate``."""
+    c = sub.add_parser(
+        "calibrate",
+        parents=[parent],
+        help="calibrate a DCC from target snapshots (bag, image folder or detection folder)",
+        description="Estimate the gimbal kinematics (tau_s, tau_d in rad/m, DH d/a in m, alpha in rad) and, in "
+        "encoderless mode, the joint angles (rad) of every snapshot.",
+    )
+    c.add_argument("data", help="ROS1 .bag, ROS2 bag folder, image folder (cam0/, cam1/) or detection folder")
+    c.add_argument(
+        "--camchain",
+        help="Kalibr camchain YAML: cam0 (static) and cam1 (dynamic) intrinsics in pixels, distortion, resolution and, "
+        "for bags, each camera's image rostopic",
+    )
+    c.add_argument(
+        "--target",
+        help="Kalibr target YAML (checkerboard or aprilgrid; sizes in metres); detection folders carry their own",
+    )
+    c.add_argument("--gimbal", help="initial kinematics YAML (joints, tau_s, tau_d, dh; rad and m)")
+    add_solver_flags(c)
+    c.add_argument(
+        "--out",
+        default="dcc_fg_calibration",
+        help="output folder for calibration.yaml, joint_angles.csv (ns, rad) and summary.json; files are replaced "
+        "atomically and only after a successful run (default ./dcc_fg_calibration)",
+    )
+    add_reader_flags(c)
+    common.add_config_flag(c, "calibrate")
+    c.set_defaults(func=calibrate_command)
+
+    v = sub.add_parser(
+        "validate",
+        parents=[parent],
+        help="hold a calibration fixed and estimate only the joint angles of new snapshots",
+        description="The paper's validation procedure: kinematics held at --calibration, joint angles (rad) estimated.",
+    )
+    v.add_argument("data", help="ROS1 .bag, ROS2 bag folder, image folder (cam0/, cam1/) or detection folder")
+    v.add_argument("--calibration", required=True, help="calibration.yaml written by dcc-fg calibrate")
+    v.add_argument(
+        "--camchain",
+        help="Kalibr camchain YAML (default: the intrinsics stored in the calibration; a bag then needs --camchain "
+        "for its image topics)",
+    )
+    v.add_argument("--target", help="Kalibr target YAML (checkerboard or aprilgrid; sizes in metres)")
+    v.add_argument(
+        "--out",
+        default="dcc_fg_validation",
+        help="output folder for calibration.yaml (the held kinematics), joint_angles.csv (ns, rad) and "
+        "summary.json; written only after a successful run (default ./dcc_fg_validation)",
+    )
+    add_reader_flags(v)
+    common.add_config_flag(v, "validate")
+    v.set_defaults(func=validate_command)
+
+
+def calibrate_command(args: argparse.Namespace) -> int:
+    config = common.effective_config(args, CalibrateConfig, "calibrate")
+    inputs = CalibrationInputs(args.data, camchain=args.camchain, target=args.target, gimbal=args.gimbal)
+    run_calibrate(inputs, Path(args.out), config, common.progress_wanted(args), args.quiet)
+    return 0
+
+
+def validate_command(args: argparse.Namespace) -> int:
+    config = common.effective_config(args, ValidateConfig, "validate")
+    inputs = CalibrationInputs(args.data, camchain=args.camchain, target=args.target, calibration=args.calibration)
+    run_validate(inputs, Path(args.out), config, common.progress_wanted(args), args.quiet)
+    return 0

@@ -1,0 +1,78 @@
+"""``dcc-fg config --print calibrate|validate|vio``: the options of a command as a YAML file.
+
+Without ``--from``, the defaults; with ``--from OUT/summary.json``, the options an earlier run used
+(so ``dcc-fg vio BAG ... --config that.yaml`` reproduces it). The file loads with ``--config``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+from typing import Any
+
+from dcc_fg.commands.calibrate import CalibrateConfig, ValidateConfig
+from dcc_fg.commands.vio import VioConfig, check_config, config_text_vio
+from dcc_fg.io.outputs import write_text_atomic
+from dcc_fg.util.config import ConfigError, dump_yaml, from_dict
+from dcc_fg.util.provenance import package_version
+
+CONFIGS: dict[str, type] = {"calibrate": CalibrateConfig, "validate": ValidateConfig, "vio": VioConfig}
+
+
+def options_of_run(summary: Path, command: str) -> Any:
+    """The options recorded in an earlier run's ``summary.json``."""
+    try:
+        data = json.loads(summary.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise ConfigError(f"{summary}: cannot read a summary.json ({exc})") from exc
+    if not isinstance(data, dict) or "options" not in data:
+        raise ConfigError(f"{summary}: has no 'options' (written by a dcc-fg older than 0.1.0?)")
+    ran = data.get("command", command)
+    if ran != command:
+        raise ConfigError(f"{summary}: records a 'dcc-fg {ran}' run, not 'dcc-fg {command}'")
+    return from_dict(CONFIGS[command], data["options"], f"{summary}: options")
+
+
+def config_text(command: str, source: Path | None = None) -> str:
+    """YAML text of the defaults of ``command`` (or of the run recorded in ``source``)."""
+    config = options_of_run(source, command) if source else CONFIGS[command]()
+    origin = f"the options of the run in {source}" if source else "the defaults"
+    header = (
+        f"dcc-fg {command} options ({origin}; dcc-fg {package_version()}).\n"
+        f"Use: dcc-fg {command} ... --config THIS.yaml  (flags given on the command line override it).\n"
+        "Units: metres, radians, seconds unless a name says otherwise (_ms, _deg, pixel_)."
+    )
+    if isinstance(config, VioConfig):
+        check_config(config, str(source or "defaults"))
+        header += "\nfrontend: overrides of FrontendConfig (defaults scaled to the image size); e.g. max_features: 200"
+        return dump_yaml(config_text_vio(config), command, header)
+    return dump_yaml(config, command, header)
+
+
+def config_command(args: argparse.Namespace) -> int:
+    text = config_text(args.print, Path(args.source) if args.source else None)
+    if args.out:
+        out = Path(args.out)
+        if out.exists() and not args.force:
+            raise ValueError(f"{out}: exists; choose another name or pass --force")
+        write_text_atomic(out, text)
+        print(f"wrote {out}")
+    else:
+        print(text, end="")
+    return 0
+
+
+def add_parser(sub: Any, parent: argparse.ArgumentParser) -> None:
+    c = sub.add_parser(
+        "config",
+        parents=[parent],
+        help="print a command's options as a YAML file for --config",
+        description="Writes every option of a command with its default (or, with --from, the options an earlier "
+        "run recorded in its summary.json) as YAML that the command reads back with --config FILE.",
+    )
+    c.add_argument("--print", required=True, choices=sorted(CONFIGS), help="the command whose options to print")
+    c.add_argument("--from", dest="source", metavar="SUMMARY_JSON", help="take the options of an earlier run")
+    c.add_argument("--out", help="write to this file instead of standard output")
+    c.add_argument("--force", action="store_true", help="replace --out if it exists")
+    c.set_defaults(func=config_command)

@@ -1,0 +1,63 @@
+"""``dcc-fg intrinsics DATA --target T.yaml --camera cam0``: one camera's intrinsics into a camchain."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from typing import Any
+
+from dcc_fg.intrinsics import intrinsics_table, run_intrinsics
+from dcc_fg.io.outputs import write_json
+from dcc_fg.targets import load_target
+
+
+def intrinsics_command(args: argparse.Namespace) -> int:
+    if not Path(args.target).is_file():
+        raise ValueError(f"{args.target}: target file not found")
+    result = run_intrinsics(
+        args.data,
+        load_target(args.target),
+        camera=args.camera,
+        model=args.model,
+        out=args.out,
+        topic=args.topic,
+        every=args.every,
+        max_views=args.max_views,
+        min_corners=args.min_corners,
+        max_rms=args.max_rms,
+    )
+    print(intrinsics_table(result))
+    if args.summary:
+        write_json(Path(args.summary), result.summary())
+    print(f"wrote {args.out}" + (f", {args.summary}" if args.summary else ""))
+    return 0
+
+
+def add_parser(sub: Any, parent: argparse.ArgumentParser) -> None:
+    i = sub.add_parser(
+        "intrinsics",
+        parents=[parent],
+        help="calibrate one camera's intrinsics and write a Kalibr camchain YAML",
+        description="Detect the target in one camera's images (bag topic or DATA/<camera>/<timestamp_ns>.png), "
+        "calibrate pinhole intrinsics (fx, fy, cx, cy in pixels) and distortion with OpenCV, print the RMS "
+        "reprojection error (pixels) and every parameter's 1-sigma, and write/update the camchain entry.",
+    )
+    i.add_argument("data", help="ROS1 .bag, ROS2 bag folder, or a folder with <camera>/<timestamp_ns>.png images")
+    i.add_argument("--target", required=True, help="Kalibr target YAML (checkerboard or aprilgrid; metres)")
+    i.add_argument("--camera", default="cam0", help="camchain entry and image sub-folder (default cam0)")
+    i.add_argument(
+        "--model",
+        default="pinhole-radtan",
+        choices=["pinhole-radtan", "pinhole-equidistant"],
+        help="pinhole with radial-tangential (k1 k2 p1 p2) or equidistant (k1..k4) distortion",
+    )
+    i.add_argument("--topic", help="image topic in a bag (default /<camera>/image_raw)")
+    i.add_argument("--every", type=int, default=1, help="use every n-th image (default 1)")
+    i.add_argument("--max-views", type=int, default=80, help="at most this many views, evenly spaced (default 80)")
+    i.add_argument("--min-corners", type=int, default=12, help="corners a view needs to be used (default 12)")
+    i.add_argument(
+        "--max-rms", type=float, default=2.0, help="refuse results with a larger RMS reprojection error (px, default 2)"
+    )
+    i.add_argument("--out", default="camchain.yaml", help="camchain YAML to write or update (default camchain.yaml)")
+    i.add_argument("--summary", help="optional JSON file with the parameters, 1-sigma and reprojection error")
+    i.set_defaults(func=intrinsics_command)

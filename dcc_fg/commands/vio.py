@@ -1,0 +1,393 @@
+"""``dcc-fg vio BAG --calibration C.yaml ... --out OUT``: files in, trajectory files out.
+
+Reads the gimbal calibration (``calibration.yaml`` of ``dcc-fg calibrate`` or ``dcc-fg simulate
+flight``) and the IMU configuration (its ``imu:`` section, or a Kalibr ``imu.yaml`` for the noise
+plus a Kalibr camchain with ``T_cam_imu`` for the mount), runs
+:func:`~dcc_fg.vio.pipeline.run_vio_bag` with a progress bar showing the real-time factor, and
+writes ``OUT/trajectory.tum``, ``OUT/joint_angles.csv`` (dcc, scc) and ``OUT/summary.json``
+atomically; nothing is written when the input is bad. Options come from :class:`VioConfig`
+(defaults, ``--config FILE``, then flags); ``summary.json`` records them with the version, the
+command line, the inputs and the effective smoother and front-end settings.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+from tqdm import tqdm
+
+from dcc_fg.commands import common
+from dcc_fg.data.vio import ImuConfig, load_imu_config
+from dcc_fg.model import GimbalCalibration, load_calibration
+from dcc_fg.util.config import ConfigError, from_dict, to_plain
+from dcc_fg.vio.backend import VioOptions, write_vio_outputs
+from dcc_fg.vio.frontend import FrontendConfig
+from dcc_fg.vio.pipeline import BagTopics, PipelineOptions, run_vio_bag
+
+#: Kalibr imu.yaml keys -> ImuConfig fields
+KALIBR_IMU_KEYS = {
+    "accelerometer_noise_density": "accelerometer_noise_density",
+    "accelerometer_random_walk": "accelerometer_random_walk",
+    "gyroscope_noise_density": "gyroscope_noise_density",
+    "gyroscope_random_walk": "gyroscope_random_walk",
+    "update_rate": "rate_hz",
+}
+
+
+def _yaml(path: Path) -> dict[str, Any]:
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: file not found")
+    data = yaml.safe_load(path.read_text()) or {}
+    if not isinstance(data, dict):
+        raise ValueError(f"{path}: expected a YAML mapping")
+    return data
+
+
+def kalibr_imu_config(imu_yaml: Path, T_sI: np.ndarray) -> ImuConfig:
+    """IMU noise from a Kalibr ``imu.yaml`` (top level or under ``imu0``) and the mount ``T_sI``."""
+    d = _yaml(imu_yaml)
+    d = d.get("imu0", d)
+    kwargs: dict[str, Any] = {"T_sI": T_sI}
+    for key, name in KALIBR_IMU_KEYS.items():
+        if key in d:
+            kwargs[name] = float(d[key])
+        elif key != "update_rate":
+            raise ValueError(f"{imu_yaml}: missing field '{key}'")
+    return ImuConfig(**kwargs)
+
+
+def camchain_T_sI(camchain: Path) -> np.ndarray:
+    """``T_cam_imu`` of ``cam0`` in a Kalibr camchain-imucam YAML (IMU -> static camera, 4x4)."""
+    d = _yaml(camchain)
+    cam0 = d.get("cam0")
+    if not isinstance(cam0, dict) or "T_cam_imu" not in cam0:
+        raise ValueError(f"{camchain}: missing field 'cam0.T_cam_imu' (the IMU -> cam0 transform)")
+    T = np.asarray(cam0["T_cam_imu"], dtype=float)
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        raise ValueError(f"{camchain}: 'cam0.T_cam_imu' must be a finite 4x4 matrix")
+    return T
+
+
+
+
+@dataclass
+class VioRunOptions:
+    """Options of a ``dcc-fg vio`` run that are not smoother or front-end parameters.
+
+    ``pixel_sigma``: feature noise in pixels (1 sigma; the smoother's normalized ``sigma`` is
+    ``pixel_sigma`` / the static camera's mean focal length); ``sync_tolerance_ms``: static <-> gimbal
+    image pairing tolerance, milliseconds; ``dynamic_rejection``: the second stage of the gimbal outlier
+    handling; ``frontend_worker``: ``auto`` | ``inline`` | ``process``; ``fit_initial_joints``: start the
+    dcc joint angles from the first frame's static <-> gimbal matches.
+    """
+
+    pixel_sigma: float = 1.0
+    sync_tolerance_ms: float = 5.0
+    dynamic_rejection: bool = True
+    frontend_worker: str = "auto"
+    fit_initial_joints: bool = True
+
+    def __post_init__(self) -> None:
+        if not (np.isfinite(self.pixel_sigma) and self.pixel_sigma > 0):
+            raise ValueError(f"pixel_sigma must be a positive number of pixels, got {self.pixel_sigma}")
+        if not (np.isfinite(self.sync_tolerance_ms) and self.sync_tolerance_ms > 0):
+            raise ValueError(f"sync_tolerance_ms must be positive, got {self.sync_tolerance_ms}")
+        if self.frontend_worker not in ("auto", "inline", "process"):
+            raise ValueError(f"frontend_worker must be auto, inline or process, got {self.frontend_worker!r}")
+
+
+@dataclass
+class TopicOptions:
+    """Bag topics: ``imu`` (sensor_msgs/Imu), ``static`` and ``dynamic`` camera images."""
+
+    imu: str = "/imu0"
+    static: str = "/cam0/image_raw"
+    dynamic: str = "/cam1/image_raw"
+
+
+#: VioOptions fields a config may not set: they are computed from other options.
+DERIVED_SMOOTHER_FIELDS = {"sigma": "run.pixel_sigma (pixels; sigma = pixel_sigma / focal length)"}
+
+
+@dataclass
+class VioConfig:
+    """Every option of ``dcc-fg vio`` (sections of the ``--config`` YAML).
+
+    ``smoother``: :class:`~dcc_fg.vio.backend.VioOptions` (without ``sigma``, see ``run.pixel_sigma``);
+    ``frontend``: overrides of :class:`~dcc_fg.vio.frontend.FrontendConfig`, whose defaults are scaled to
+    the static camera's image size (:meth:`~dcc_fg.vio.frontend.FrontendConfig.for_resolution`).
+    """
+
+    run: VioRunOptions = field(default_factory=VioRunOptions)
+    topics: TopicOptions = field(default_factory=TopicOptions)
+    smoother: VioOptions = field(default_factory=lambda: VioOptions(keyframe_every=3))
+    frontend: dict[str, Any] = field(default_factory=dict)
+
+
+def check_config(config: VioConfig, where: str) -> None:
+    """Refuse derived smoother fields and unknown front-end options before any work starts."""
+    default = VioConfig()
+    for name, instead in DERIVED_SMOOTHER_FIELDS.items():
+        if getattr(config.smoother, name) != getattr(default.smoother, name):
+            raise ConfigError(f"{where}: smoother.{name} is computed; set {instead} instead")
+    from_dict(FrontendConfig, config.frontend, f"{where}.frontend")
+
+
+def frontend_config(config: VioConfig, calibration: GimbalCalibration) -> FrontendConfig:
+    """The resolution-scaled front-end defaults with the config's overrides."""
+    assert calibration.static_camera is not None
+    base = FrontendConfig.for_resolution(*calibration.static_camera.resolution)
+    return from_dict(FrontendConfig, config.frontend, "frontend", base)
+
+
+def config_text_vio(config: VioConfig) -> dict[str, Any]:
+    """``config`` as plain data, without the derived smoother fields (what ``--config`` accepts)."""
+    data = to_plain(config)
+    for name in DERIVED_SMOOTHER_FIELDS:
+        data["smoother"].pop(name, None)
+    return data
+@dataclass(frozen=True)
+class VioInputs:
+    """Input files of a VIO run: the bag, the calibration and, optionally, Kalibr IMU files."""
+
+    bag: str
+    calibration: str
+    imu_yaml: str | None = None
+    camchain: str | None = None
+
+    def paths(self) -> dict[str, str | None]:
+        return dataclasses.asdict(self)
+
+
+def imu_config(inputs: VioInputs) -> ImuConfig:
+    """IMU noise and mount: the calibration's ``imu:`` section, or ``--imu-yaml`` (+ ``--camchain`` for
+    ``T_sI``, else the calibration's)."""
+    cal_path = Path(inputs.calibration)
+    if inputs.imu_yaml:
+        if inputs.camchain:
+            T_sI = camchain_T_sI(Path(inputs.camchain))
+        else:
+            embedded = load_imu_config(cal_path)
+            if embedded is None:
+                raise ValueError(
+                    f"{cal_path}: no 'imu:' section; with --imu-yaml also give --camchain (Kalibr camchain with "
+                    "cam0.T_cam_imu)"
+                )
+            T_sI = embedded.T_sI
+        return kalibr_imu_config(Path(inputs.imu_yaml), T_sI)
+    imu = load_imu_config(cal_path)
+    if imu is None:
+        raise ValueError(
+            f"{cal_path}: no 'imu:' section (T_sI and the IMU noise); add one or pass --imu-yaml and --camchain"
+        )
+    if inputs.camchain:
+        imu = dataclasses.replace(imu, T_sI=camchain_T_sI(Path(inputs.camchain)))
+    return imu
+
+
+def parse_angles(text: str, option: str) -> tuple[float, ...]:
+    """``'1.57,0'`` or ``'1.57 0'`` -> (1.57, 0.0) (radians)."""
+    try:
+        return tuple(float(x) for x in text.replace(",", " ").split())
+    except ValueError:
+        raise ValueError(f"{option}: expected numbers (rad), got '{text}'") from None
+
+
+def check_angles(values: tuple[float, ...] | None, n: int, option: str) -> None:
+    if values is not None and (len(values) != n or not all(np.isfinite(values))):
+        raise ValueError(f"{option}: expected {n} finite joint angles (rad), got {list(values)}")
+
+
+def smoother_options(config: VioConfig, cal: GimbalCalibration, cal_path: Path) -> VioOptions:
+    """The smoother's options: the config's, with ``sigma`` from ``run.pixel_sigma`` and checked angles."""
+    opts = config.smoother
+    L = cal.n_joints
+    check_angles(opts.theta_fixed, L, "--fixed-joints (smoother.theta_fixed)")
+    check_angles(opts.theta_initial, L, "--initial-joints (smoother.theta_initial)")
+    if opts.mode == "scc" and opts.theta_fixed is None:
+        raise ValueError(f"--mode scc needs --fixed-joints with {L} angles (rad): the locked gimbal position")
+    if cal.static_camera is None:
+        raise ValueError(f"{cal_path}: no 'cam0' camera model (intrinsics of the static camera)")
+    focal = float(np.mean(cal.static_camera.intrinsics[:2]))
+    return dataclasses.replace(opts, sigma=config.run.pixel_sigma / focal)
+
+
+class ProgressBar:
+    """A tqdm bar on stderr showing the real-time factor (a no-op when ``show`` is False)."""
+
+    def __init__(self, show: bool) -> None:
+        self.bar = tqdm(unit="frame", desc="vio", file=sys.stderr) if show else None
+
+    def __call__(self, done: int, total: int, elapsed: float, data_s: float) -> None:
+        if self.bar is None:
+            return
+        self.bar.total = total
+        self.bar.n = done
+        if data_s > 0:
+            self.bar.set_postfix_str(f"real-time factor {elapsed / data_s:.2f}")
+        self.bar.refresh()
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+
+
+def run_vio(inputs: VioInputs, out: Path, config: VioConfig, progress: bool = False, quiet: bool = False) -> Any:
+    """Validate the inputs, run the VIO over ``inputs.bag`` and write ``out``; returns the VioResult."""
+    cal_path, bag = Path(inputs.calibration), Path(inputs.bag)
+    if not cal_path.is_file():
+        raise FileNotFoundError(f"{cal_path}: calibration file not found")
+    if not bag.exists():
+        raise FileNotFoundError(f"{bag}: bag not found")
+    cal = load_calibration(cal_path)
+    imu = imu_config(inputs)
+    options = smoother_options(config, cal, cal_path)
+    mono = options.mode == "mono"
+    topics = BagTopics(config.topics.imu, config.topics.static, None if mono else config.topics.dynamic)
+    pipeline = PipelineOptions(
+        reject_dynamic=config.run.dynamic_rejection,
+        fit_initial_joints=config.run.fit_initial_joints,
+        tolerance_ns=int(round(config.run.sync_tolerance_ms * 1e6)),
+        worker=config.run.frontend_worker,
+        frontend=frontend_config(config, cal),
+    )
+    bar = ProgressBar(progress)
+    try:
+        result, run = run_vio_bag(bag, cal, imu, options, topics, pipeline, progress=bar if progress else None)
+    finally:
+        bar.close()
+    provenance = common.record("vio", inputs.paths(), config)
+    provenance["options"] = config_text_vio(config)
+    provenance["effective_options"] = {"smoother": to_plain(options), "pipeline": to_plain(pipeline)}
+    write_vio_outputs(out, result, {**provenance, "calibration": str(cal_path), "run": run})
+    if not quiet:
+        print_vio_summary(result, out, cal.n_joints)
+    return result
+
+
+def print_vio_summary(result: Any, out: Path, n_joints: int) -> None:
+    s = result.stats
+    print(
+        f"{result.mode}: {s['keyframes']} keyframes over {s['data_duration_s']:.1f} s in "
+        f"{s['processing_time_s']:.1f} s (real-time factor {s['real_time_factor']:.2f}), {s['landmarks']} landmarks, "
+        f"{s['failed_updates']} failed updates"
+    )
+    if result.mode == "dcc" and result.theta.size:
+        last = ", ".join(f"{x:.4f}" for x in result.theta[-1])
+        print(f"final joint angles [{last}] rad")
+    print(
+        f"wrote {out / 'trajectory.tum'}, {out / 'summary.json'}"
+        + (f", {out / 'joint_angles.csv'}" if result.mode != "mono" and n_joints else "")
+    )
+
+
+def vio_command(args: argparse.Namespace) -> int:
+    """The ``dcc-fg vio`` subcommand (see :func:`add_parser`)."""
+    config = common.effective_config(args, VioConfig, "vio")
+    check_config(config, args.config or "command line")
+    inputs = VioInputs(args.bag, args.calibration, args.imu_yaml, args.camchain)
+    run_vio(inputs, Path(args.out), config, common.progress_wanted(args), args.quiet)
+    return 0
+
+
+def add_parser(sub: Any, parent: argparse.ArgumentParser) -> None:
+    """Register ``dcc-fg vio`` on an argparse subparsers object."""
+    v = sub.add_parser(
+        "vio",
+        parents=[parent],
+        help="gimbal-aware visual-inertial odometry over a ROS1/ROS2 bag",
+        description="IMU-preintegrated keyframe fixed-lag smoother (GTSAM) whose states carry the gimbal joint "
+        "angles (dcc), or hold them at known fixed angles (scc), or use the static camera only (mono). Reads "
+        "sensor_msgs/Imu and two image topics; writes OUT/trajectory.tum (TUM: t[s] tx ty tz qx qy qz qw, body = "
+        "IMU frame in a gravity-aligned world), OUT/joint_angles.csv (timestamp_ns,theta_1..theta_L, rad) and "
+        "OUT/summary.json. Starts from standstill (the first 0.5 s of IMU at rest).",
+    )
+    v.add_argument("bag", help="ROS1 .bag file or ROS2 bag folder")
+    v.add_argument(
+        "--calibration",
+        required=True,
+        help="calibration.yaml with the chain (joints, tau_s, tau_d, dh), cam0/cam1 intrinsics and, unless "
+        "--imu-yaml is given, an 'imu:' section (T_sI 4x4 IMU -> static camera, noise densities)",
+    )
+    v.add_argument("--imu-yaml", help="Kalibr imu.yaml: noise densities (m/s^2/sqrt(Hz), rad/s/sqrt(Hz)), random walks")
+    v.add_argument("--camchain", help="Kalibr camchain-imucam.yaml: takes T_sI from cam0.T_cam_imu")
+    add_topic_flags(v)
+    add_smoother_flags(v)
+    v.add_argument("--out", required=True, help="output folder")
+    common.add_config_flag(v, "vio")
+    v.set_defaults(func=vio_command)
+
+
+def add_topic_flags(v: argparse.ArgumentParser) -> None:
+    S = common.SUPPRESS
+    v.add_argument("--imu-topic", dest="topics.imu", default=S, help="sensor_msgs/Imu topic (default /imu0)")
+    v.add_argument(
+        "--static-topic", dest="topics.static", default=S, help="static camera image topic (default /cam0/image_raw)"
+    )
+    v.add_argument(
+        "--dynamic-topic", dest="topics.dynamic", default=S, help="gimbal camera image topic (default /cam1/image_raw)"
+    )
+
+
+def add_smoother_flags(v: argparse.ArgumentParser) -> None:
+    S = common.SUPPRESS
+    v.add_argument("--mode", dest="smoother.mode", default=S, choices=["dcc", "scc", "mono"], help="default dcc")
+    v.add_argument(
+        "--initial-joints",
+        dest="smoother.theta_initial",
+        type=lambda t: parse_angles(t, "--initial-joints"),
+        default=S,
+        metavar="RAD",
+        help="dcc: starting guess of the joint angles, e.g. '1.57,0' (rad); by default they are found from the "
+        "first frame's static/gimbal matches",
+    )
+    v.add_argument(
+        "--fixed-joints",
+        dest="smoother.theta_fixed",
+        type=lambda t: parse_angles(t, "--fixed-joints"),
+        default=S,
+        metavar="RAD",
+        help="scc: the locked joint angles, e.g. '1.57,0' (rad)",
+    )
+    v.add_argument(
+        "--pixel-sigma", dest="run.pixel_sigma", type=float, default=S, help="feature noise, px (1 sigma; default 1)"
+    )
+    v.add_argument(
+        "--keyframe-every",
+        dest="smoother.keyframe_every",
+        type=int,
+        default=S,
+        help="every n-th frame is a keyframe (default 3)",
+    )
+    v.add_argument("--lag", dest="smoother.lag", type=float, default=S, help="smoother window, seconds (default 1.5)")
+    v.add_argument(
+        "--sync-tolerance",
+        dest="run.sync_tolerance_ms",
+        type=float,
+        default=S,
+        metavar="MS",
+        help="image pairing tolerance, ms (default 5)",
+    )
+    v.add_argument(
+        "--no-dynamic-rejection",
+        dest="run.dynamic_rejection",
+        action="store_false",
+        default=S,
+        help="keep every gimbal-camera track (skip the second stage of the two-stage outlier handling)",
+    )
+    v.add_argument(
+        "--frontend",
+        dest="run.frontend_worker",
+        default=S,
+        choices=["auto", "inline", "process"],
+        help="run the feature tracking inline, or in a second process on another core so it overlaps "
+        "the smoother; auto (default) takes the second process when two or more cores are usable. "
+        "benchmarks/bench_vio.py measures both on your machine",
+    )
