@@ -1,6 +1,6 @@
 """Gimbal kinematic chain of a dynamic camera cluster, with analytic Jacobians.
 
-Conventions (paper sections III-IV, ARCHITECTURE.md):
+Conventions (paper sections III-IV, docs/architecture.md):
 
 * ``T_ab`` is a 4x4 homogeneous transform mapping a point expressed in frame ``b`` into
   frame ``a``: ``p_a = T_ab @ p_b`` (the paper's T^{a:b}).

@@ -1,6 +1,6 @@
 """Reprojection factors of the VIO smoother, including the gimbal-camera factor of the paper's eq. 14.
 
-Frames (ARCHITECTURE.md): ``W`` world, ``I`` IMU/body, ``s`` static camera, ``d`` gimbal camera.
+Frames (docs/architecture.md): ``W`` world, ``I`` IMU/body, ``s`` static camera, ``d`` gimbal camera.
 Measurements are *undistorted normalized* image coordinates ``z = (x/z, y/z)`` (unitless);
 ``sigma`` is their standard deviation (pixel sigma / focal length).
 
