@@ -132,16 +132,23 @@ def print_demo_summary(out_dir: Path, summary: dict[str, Any], figure_paths: lis
 
 
 def run_demo(
-    out_dir: Path, seed: int = 0, n_joints: int = 2, verbose: bool = True, figures: bool = True, report: bool = False
+    out_dir: Path,
+    seed: int = 0,
+    n_joints: int = 2,
+    verbose: bool = True,
+    figures: bool = True,
+    report: bool = False,
+    provenance: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """Run the demo; returns the summary dictionary (also written to ``out_dir/summary.json``).
 
     ``figures`` saves the calibration figures (with the ground truth) as ``out_dir/calibration_*.png``;
-    ``report`` also writes ``out_dir/report.pdf`` (the demo table, then the figures).
+    ``report`` also writes ``out_dir/report.pdf`` (the demo table, then the figures); ``provenance``
+    (version, command line, options) is written first in ``summary.json``.
     """
     t0 = time.perf_counter()
     runs = run_demo_calibrations(seed, n_joints)
-    summary = demo_summary(runs, seed)
+    summary = {**(provenance or {}), **demo_summary(runs, seed)}
     out_dir.mkdir(parents=True, exist_ok=True)
     runs.bundle.calibration.save(out_dir / "calibration.yaml")
     write_joint_angles_csv(out_dir / "joint_angles.csv", runs.bundle.timestamps_ns, runs.bundle.joint_angles)

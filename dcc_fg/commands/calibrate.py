@@ -24,11 +24,11 @@ from dcc_fg.calibrate import CalibrationOptions, CalibrationResult, calibrate
 from dcc_fg.commands import common
 from dcc_fg.data import CalibrationDataset, common_corners
 from dcc_fg.io.camchain import CamchainEntry
-from dcc_fg.sources.dataset import load_dataset
 from dcc_fg.io.outputs import plain, write_text_atomic
 from dcc_fg.model import GimbalCalibration, load_calibration
 from dcc_fg.plots.output import write_calibration_outputs
 from dcc_fg.report import parameter_table, run_summary_table
+from dcc_fg.sources.dataset import load_dataset
 from dcc_fg.util.config import ConfigError
 
 log = logging.getLogger(__name__)

@@ -3,14 +3,29 @@
 from __future__ import annotations
 
 import argparse
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from dcc_fg.commands import common
 from dcc_fg.demo import run_demo
 
 
+@dataclass
+class DemoOptions:
+    """``seed`` of the simulation, number of ``joints`` L, ``report`` (also OUT/report.pdf)."""
+
+    seed: int = 0
+    joints: int = 2
+    report: bool = False
+
+
 def demo_command(args: argparse.Namespace) -> int:
-    run_demo(Path(args.out), seed=args.seed, n_joints=args.joints, report=args.report)
+    options = DemoOptions(args.seed, args.joints, args.report)
+    provenance = common.record("demo", {}, options)
+    run_demo(
+        Path(args.out), seed=options.seed, n_joints=options.joints, report=options.report, provenance=provenance
+    )
     return 0
 
 
