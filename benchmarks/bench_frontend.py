@@ -111,7 +111,7 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
     out = report("simulated flight", frames, Frontend(cal.static_camera, cal.dynamic_camera, T_ds=cal.T_ds(theta0)))
     out["render_ms"] = render_ms
     if EUROC.is_dir():
-        from dcc_fg.io.euroc import euroc_calibration, load_euroc
+        from dcc_fg.sources.euroc import euroc_calibration, load_euroc
 
         ds = load_euroc(EUROC)
         pairs = dict(ds.images1)

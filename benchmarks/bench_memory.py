@@ -31,7 +31,7 @@ What is measured
    larger (as in the ``--joints 0`` runs):
 
    * ``baseline``: the imports only (numpy, OpenCV, GTSAM, rosbags, dcc_fg): the fixed cost;
-   * ``load``: :func:`dcc_fg.io.dataset.load_dataset` on the bag: the streaming reader
+   * ``load``: :func:`dcc_fg.sources.dataset.load_dataset` on the bag: the streaming reader
      (:class:`~dcc_fg.io.bags.BagImagePairs`) and chessboard detection of every image;
    * ``calibrate``: the whole ``dcc-fg calibrate BAG --camchain C --target T --out OUT`` command
      with ``--gimbal gimbal.yaml`` (L = 0) or ``--joints L`` (automatic initialization): reading,
@@ -41,7 +41,7 @@ What is measured
    ``time_s`` is the workload's time inside its process, ``wall_s`` the whole child process
    (interpreter start and imports included).
 3. The calibration is compared with the rendering's ground truth on the gauge-invariant
-   per-snapshot ``T_ds(theta_i)`` (ARCHITECTURE.md): the rotation angle (rad) and the norm of the
+   per-snapshot ``T_ds(theta_i)`` (docs/architecture.md): the rotation angle (rad) and the norm of the
    translation part (m) of ``Log(T_ds_true^-1 T_ds_est)`` (:func:`dcc_fg.studies.calibration_accuracy.T_ds_errors`)
    for every snapshot the calibration used (``T_ds_error``: RMS, median and max over snapshots).
    For L = 0, T_ds is one transform (also reported in mrad / mm as before).  ``pixel_rms_per_axis``
@@ -99,7 +99,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from dcc_fg.io.bags import write_ros1_bag, write_ros2_bag  # noqa: E402
+from dcc_fg.io.bag_writer import write_ros1_bag, write_ros2_bag  # noqa: E402
 from dcc_fg.io.folders import FramePair  # noqa: E402
 from dcc_fg.targets import TargetGeometry  # noqa: E402
 from factors import chain  # noqa: E402
@@ -186,10 +186,11 @@ def write_inputs(workdir: Path, n: int, fmt: str, storage: str, joints: int = 0,
     (the simulator's perturbed gimbal.yaml is written too but not used)."""
     workdir.mkdir(parents=True, exist_ok=True)
     if joints > 0:
-        from dcc_fg.sim.write_dataset import write_calibration_dataset
+        from dcc_fg.sim.write_dataset import CalibrationSimSpec, write_calibration_dataset
 
         t = time.perf_counter()
-        r = write_calibration_dataset(workdir, "checkerboard", fmt, seed, n, joints, storage=storage)  # type: ignore[arg-type]
+        spec = CalibrationSimSpec("checkerboard", fmt, seed, n, joints, storage=storage)  # type: ignore[arg-type]
+        r = write_calibration_dataset(workdir, spec)
         write_s = time.perf_counter() - t
         bag = r.data
         files = [bag] if bag.is_file() else [p for p in bag.rglob("*") if p.is_file()]
@@ -243,7 +244,7 @@ def _child(mode: str, workdir: Path, bag: str, joints: int = 0) -> dict[str, Any
 
     import dcc_fg.calibrate  # noqa: F401
     from dcc_fg.cli import main
-    from dcc_fg.io.dataset import load_dataset
+    from dcc_fg.sources.dataset import load_dataset
 
     out: dict[str, Any] = {"mode": mode}
     t = time.perf_counter()

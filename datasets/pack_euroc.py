@@ -6,7 +6,7 @@ Usage::
 
 writes ``OUT/euroc.bag`` (ROS1) or ``OUT/euroc/`` (ROS2) with ``/imu0``, ``/cam0/image_raw`` (static)
 and ``/cam1/image_raw`` (cam1 as a one-joint gimbal camera locked at EuRoC's extrinsics, theta = 0),
-and ``OUT/calibration.yaml`` (see :mod:`dcc_fg.io.euroc`).
+and ``OUT/calibration.yaml`` (see :mod:`dcc_fg.io.euroc`, :mod:`dcc_fg.sources.euroc`).
 """
 
 from __future__ import annotations
@@ -14,7 +14,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from dcc_fg.io.euroc import load_euroc, pack_euroc_bag, write_euroc_calibration
+from dcc_fg.io.euroc import pack_euroc_bag
+from dcc_fg.sources.euroc import load_euroc, write_euroc_calibration
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -39,7 +39,7 @@ from dcc_fg.detection import detect_target
 from dcc_fg.io.bags import BagTopicImages, is_bag
 from dcc_fg.io.camchain import CamchainEntry, camchain_to_yaml, load_camchain
 from dcc_fg.io.folders import IMAGE_SUFFIXES, list_timestamped, read_image
-from dcc_fg.model import write_text_atomic
+from dcc_fg.io.outputs import write_text_atomic
 from dcc_fg.targets import TargetGeometry
 from factors.camera import CameraModel
 

@@ -16,8 +16,6 @@
 
 from __future__ import annotations
 
-import os
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -26,6 +24,8 @@ import numpy as np
 import yaml
 from numpy.typing import NDArray
 
+from dcc_fg.io.camchain import camera_from_dict, camera_to_dict
+from dcc_fg.io.outputs import plain, write_text_atomic
 from factors import chain
 from factors.camera import CameraModel
 
@@ -115,20 +115,16 @@ class GimbalCalibration:
             out["observable"] = {n: bool(o) for n, o in zip(self.names, self.observable, strict=True)}
         if self.gauge_fixed is not None:
             out["gauge_fixed"] = [n for n, g in zip(self.names, self.gauge_fixed, strict=True) if g]
-        from dcc_fg.io.camchain import camera_to_dict
-
         if self.static_camera is not None:
             out["cam0"] = camera_to_dict(self.static_camera)
         if self.dynamic_camera is not None:
             out["cam1"] = camera_to_dict(self.dynamic_camera)
         if self.statistics:
-            out["statistics"] = _plain(self.statistics)
+            out["statistics"] = plain(self.statistics)
         return out
 
     @staticmethod
     def from_dict(d: dict[str, Any], source: str = "<calibration>") -> GimbalCalibration:
-        from dcc_fg.io.camchain import camera_from_dict
-
         for key in ("joints", "tau_s", "tau_d", "dh"):
             if key not in d:
                 raise ValueError(f"{source}: missing field '{key}'")
@@ -171,31 +167,3 @@ def load_calibration(path: str | Path) -> GimbalCalibration:
         raise ValueError(f"{path}: not a YAML mapping")
     return GimbalCalibration.from_dict(d, str(path))
 
-
-def write_text_atomic(path: Path, text: str) -> None:
-    """Write ``text`` to ``path`` through a temporary file and an atomic rename."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-
-
-def _plain(obj: Any) -> Any:
-    """Convert numpy scalars / arrays inside ``obj`` to plain Python for YAML/JSON."""
-    if isinstance(obj, dict):
-        return {str(k): _plain(v) for k, v in obj.items()}
-    if isinstance(obj, list | tuple):
-        return [_plain(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return _plain(obj.tolist())
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, float) and not np.isfinite(obj):
-        return None
-    return obj

@@ -191,7 +191,7 @@ def demo_table(s: dict[str, Any]) -> str:
 def run_summary_table(stats: dict[str, Any]) -> str:
     """End-of-run summary of ``dcc-fg calibrate`` / ``validate`` (from the run's ``statistics``).
 
-    Input counts (``stats["input"]``, from :func:`dcc_fg.io.dataset.load_dataset`'s report),
+    Input counts (``stats["input"]``, from :func:`dcc_fg.sources.dataset.load_dataset`'s report),
     snapshots used / rejected, the reprojection table per camera, the observability of the
     kinematic parameters (``stats["observability"]``) and the spread of the per-snapshot T_ds
     standard deviations (``stats["T_ds_std"]``, mrad and mm).

@@ -14,16 +14,17 @@ import yaml
 
 import dcc_fg.commands.common
 from dcc_fg.cli import main
-from dcc_fg.io.bags import write_ros1_bag
+from dcc_fg.io.bag_writer import write_ros1_bag
 from dcc_fg.io.folders import ImageFolder
-from dcc_fg.sim.write_dataset import RenderedCalibration, write_calibration_dataset
+from dcc_fg.sim.write_dataset import CalibrationSimSpec, RenderedCalibration, write_calibration_dataset
 
 SENTINEL = "sentinel: previous calibration\n"
 
 
 @pytest.fixture(scope="module")
 def small(tmp_path_factory: pytest.TempPathFactory) -> RenderedCalibration:
-    return write_calibration_dataset(tmp_path_factory.mktemp("small"), "checkerboard", "folder", seed=5, n_snapshots=12)
+    spec = CalibrationSimSpec("checkerboard", "folder", seed=5, n_snapshots=12)
+    return write_calibration_dataset(tmp_path_factory.mktemp("small"), spec)
 
 
 def _args(r: RenderedCalibration, data: Path, out: Path, **over: Path) -> list[str]:
@@ -175,8 +176,8 @@ def test_joint_that_never_moves(tmp_path, capsys) -> None:  # noqa: ANN001
     import numpy as np
 
     from dcc_fg.io.camchain import CamchainEntry, camchain_to_yaml
-    from dcc_fg.io.detections import write_detection_csv
     from dcc_fg.sim.calibration_scene import SceneConfig, simulate_calibration, simulate_snapshots
+    from dcc_fg.sources.detections import write_detection_csv
     from dcc_fg.targets import TargetGeometry
 
     grid = TargetGeometry.aprilgrid(6, 5, 0.06, 0.3)

@@ -37,7 +37,7 @@ from dcc_fg.cli import main
 from dcc_fg.io.outputs import read_joint_angles_csv
 from dcc_fg.model import load_calibration
 from dcc_fg.sim.calibration_scene import simulate_calibration
-from dcc_fg.sim.write_dataset import load_ground_truth, write_calibration_dataset
+from dcc_fg.sim.write_dataset import CalibrationSimSpec, load_ground_truth, write_calibration_dataset
 from dcc_fg.studies.calibration_accuracy import T_ds_errors, cramer_rao_bound
 
 RATIO = 1.5
@@ -63,7 +63,8 @@ def _bound(sim_config, seed: int, sigma: float) -> np.ndarray:  # noqa: ANN001
 
 
 def _end_to_end(tmp: Path, target: str, fmt: str, n: int, seed: int, storage: str = "sqlite3") -> dict:
-    r = write_calibration_dataset(tmp / "sim", target, fmt, seed, n, storage=storage)  # type: ignore[arg-type]
+    spec = CalibrationSimSpec(target, fmt, seed, n, storage=storage)  # type: ignore[arg-type]
+    r = write_calibration_dataset(tmp / "sim", spec)
     out = tmp / "out"
     argv = ["calibrate", str(r.data), "--camchain", str(r.camchain), "--target", str(r.target)]
     argv += ["--gimbal", str(r.gimbal), "--out", str(out), "--quiet"]

@@ -234,9 +234,10 @@ def test_calibrate_cli_report(tmp_path: Path, capsys: pytest.CaptureFixture[str]
     """``dcc-fg calibrate IMAGES ... --report`` on a small rendered image folder, then ``validate --report``."""
     from dcc_fg import load_calibration
     from dcc_fg.cli import main
-    from dcc_fg.sim.write_dataset import write_calibration_dataset
+    from dcc_fg.sim.write_dataset import CalibrationSimSpec, write_calibration_dataset
 
-    r = write_calibration_dataset(tmp_path / "set", "checkerboard", "folder", seed=5, n_snapshots=12)
+    spec = CalibrationSimSpec("checkerboard", "folder", seed=5, n_snapshots=12)
+    r = write_calibration_dataset(tmp_path / "set", spec)
     files = ["--camchain", str(r.camchain), "--target", str(r.target)]
     out = tmp_path / "out"
     assert main(["calibrate", str(r.data), *files, "--gimbal", str(r.gimbal), "--out", str(out), "--report"]) == 0
@@ -259,9 +260,9 @@ def test_calibrate_cli_report(tmp_path: Path, capsys: pytest.CaptureFixture[str]
 def test_figures_on_real_euroc_stereo_pair() -> None:
     """The EuRoC VI-sensor stereo pair (real AprilGrid detections) as an L = 0 cluster."""
     from dcc_fg.io.camchain import CamchainEntry
-    from dcc_fg.io.dataset import load_dataset
     from dcc_fg.model import GimbalCalibration
     from dcc_fg.plots.calibration import noise_sigma
+    from dcc_fg.sources.dataset import load_dataset
     from factors.camera import CameraModel
     from tests.conftest import shared_data
 

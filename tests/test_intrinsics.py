@@ -31,7 +31,7 @@ from dcc_fg.intrinsics import (
     run_intrinsics,
     select_views,
 )
-from dcc_fg.io.bags import write_ros1_bag, write_ros2_bag
+from dcc_fg.io.bag_writer import write_ros1_bag, write_ros2_bag
 from dcc_fg.io.camchain import load_camchain
 from dcc_fg.io.folders import FramePair
 from dcc_fg.targets import TargetGeometry

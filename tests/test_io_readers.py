@@ -15,14 +15,17 @@ import numpy as np
 import pytest
 from conftest import shared_data as real
 
+import dcc_fg.io.bag_writer as bag_writer
 import dcc_fg.io.folders as folders
 from dcc_fg.data import Observation
-from dcc_fg.io.bags import BagImagePairs, decode_image, read_bag_pairs, write_ros1_bag, write_ros2_bag
+from dcc_fg.io.bag_writer import write_ros1_bag, write_ros2_bag
+from dcc_fg.io.bags import BagImagePairs, decode_image, read_bag_pairs
 from dcc_fg.io.camchain import CamchainEntry
-from dcc_fg.io.dataset import detect_layout, load_dataset
-from dcc_fg.io.detections import read_detection_csv, read_detection_folder, write_detection_csv
 from dcc_fg.io.folders import FramePair, ImageFolder, read_joints_csv, write_image_folder
+from dcc_fg.io.layout import detect_layout
 from dcc_fg.io.pairing import check_pairing, nearest_within, pair_timestamps
+from dcc_fg.sources.dataset import load_dataset
+from dcc_fg.sources.detections import read_detection_csv, read_detection_folder, write_detection_csv
 from dcc_fg.targets import TargetGeometry
 from factors.camera import CameraModel
 
@@ -247,9 +250,7 @@ def test_bag_missing_topic(tmp_path: Path) -> None:
 
 
 def test_bag_undecodable_image_names_topic(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    import dcc_fg.io.bags as bags
-
-    real_message = bags.image_message
+    real_message = bag_writer.image_message
 
     def broken(typestore, img, stamp, frame_id, compressed=False):  # type: ignore[no-untyped-def]
         msgtype, msg = real_message(typestore, img, stamp, frame_id, compressed)
@@ -257,7 +258,7 @@ def test_bag_undecodable_image_names_topic(tmp_path: Path, monkeypatch: pytest.M
             msg.data = np.frombuffer(b"\x89PNG broken", np.uint8)
         return msgtype, msg
 
-    monkeypatch.setattr(bags, "image_message", broken)
+    monkeypatch.setattr(bag_writer, "image_message", broken)
     bag = write_ros1_bag(tmp_path / "rec.bag", frames(3), compressed=True)
     monkeypatch.undo()
     pairs = BagImagePairs(bag, "/cam0/image_raw", "/cam1/image_raw", tolerance_ns=2_000_000)

@@ -37,8 +37,8 @@ from dcc_fg.data import CalibrationDataset, Observation, Snapshot, common_corner
 from dcc_fg.detection import detect_checkerboard
 from dcc_fg.intrinsics import View, calibrate_intrinsics
 from dcc_fg.io.camchain import CamchainEntry, camchain_to_yaml
-from dcc_fg.io.dataset import load_dataset
 from dcc_fg.model import GimbalCalibration, load_calibration
+from dcc_fg.sources.dataset import load_dataset
 from dcc_fg.targets import TargetGeometry
 from factors.camera import CameraModel
 

@@ -11,11 +11,11 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from dcc_fg.cli import main
-from dcc_fg.io.bag_writer import BagWriter, quaternion_xyzw
-from dcc_fg.io.bags import bag_messages, open_bag
-from dcc_fg.io.vio_bag import VioBag, VioFrame
-from dcc_fg.model import load_calibration
 from dcc_fg.data.vio import ImuSamples, load_imu_config
+from dcc_fg.io.bag_writer import BagWriter
+from dcc_fg.io.bags import bag_messages, open_bag
+from dcc_fg.model import load_calibration
+from dcc_fg.sources.vio_bag import VioBag, VioFrame
 
 T0 = 1_600_000_000_000_000_000
 MS = 1_000_000
@@ -124,12 +124,20 @@ def test_gaps_are_reported(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> 
     assert flagged == [int(frame_t[10])]  # first frame after both gaps
 
 
-def test_quaternion_matches_scipy() -> None:
-    for seed in range(20):
-        R = Rotation.random(random_state=seed)
-        q = quaternion_xyzw(R.as_matrix())
+def test_pose_messages_hold_the_rotation_with_w_nonnegative(tmp_path: Path) -> None:
+    rotations = [Rotation.random(random_state=seed) for seed in range(20)]
+    with BagWriter(tmp_path / "poses", 2) as bag:
+        for k, R in enumerate(rotations):
+            T = np.eye(4)
+            T[:3, :3] = R.as_matrix()
+            bag.pose("/pose", T0 + k * MS, T)
+    with open_bag(tmp_path / "poses") as reader:
+        msgs = [msg for _, _, msg in bag_messages(tmp_path / "poses", reader, list(reader.connections))]
+    for R, msg in zip(rotations, msgs, strict=True):
+        o = msg.pose.orientation
+        q = np.array([o.x, o.y, o.z, o.w])
         ref = R.as_quat()
-        assert np.allclose(q, ref if ref[3] >= 0 else -ref, atol=1e-12)
+        assert q[3] >= 0 and np.allclose(q, ref if ref[3] >= 0 else -ref, atol=1e-12)
 
 
 def test_simulate_flight_cli(tmp_path: Path) -> None:

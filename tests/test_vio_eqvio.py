@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from dcc_fg.io.eqvio import load_eqvio_csv
+from dcc_fg.sources.eqvio import load_eqvio_csv
 from dcc_fg.vio.backend import VioOptions, run_vio, write_vio_outputs
 from dcc_fg.vio.evaluate import evaluate_output
 from tests.conftest import shared_data

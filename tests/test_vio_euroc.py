@@ -10,13 +10,14 @@ import numpy as np
 import pytest
 
 from dcc_fg.cli import main
-from dcc_fg.io.euroc import euroc_calibration, load_euroc, pack_euroc_bag, write_euroc_calibration
+from dcc_fg.data.vio import ImuSamples, load_imu_config
+from dcc_fg.io.euroc import pack_euroc_bag
 from dcc_fg.io.tum import read_tum
-from dcc_fg.io.vio_bag import VioBag
 from dcc_fg.model import load_calibration
+from dcc_fg.sources.euroc import euroc_calibration, load_euroc, write_euroc_calibration
+from dcc_fg.sources.vio_bag import VioBag
 from dcc_fg.vio.epipolar import epipolar_distance, essential
 from dcc_fg.vio.frontend import Frontend
-from dcc_fg.data.vio import ImuSamples, load_imu_config
 from tests.conftest import shared_data
 
 

@@ -9,15 +9,14 @@ from typing import Any
 from dcc_fg.sim.flight_bag import write_flight
 from dcc_fg.sim.render import RenderConfig
 from dcc_fg.sim.trajectory import FlightConfig, locked_gimbal
-from dcc_fg.sim.write_dataset import DYNAMIC_TOPIC, STATIC_TOPIC, write_calibration_dataset
+from dcc_fg.sim.write_dataset import DYNAMIC_TOPIC, STATIC_TOPIC, CalibrationSimSpec, write_calibration_dataset
 
 
 def simulate_calibration_command(args: argparse.Namespace) -> int:
     """``dcc-fg simulate calibration``."""
     render = RenderConfig(noise_sigma=args.noise, blur_sigma_px=args.blur)
-    res = write_calibration_dataset(
-        args.out, args.target, args.format, args.seed, args.snapshots, args.joints, render, args.storage
-    )
+    spec = CalibrationSimSpec(args.target, args.format, args.seed, args.snapshots, args.joints, render, args.storage)
+    res = write_calibration_dataset(args.out, spec)
     print(
         f"rendered {len(res.T_st)} image pairs in {res.render_time_s:.1f} s: {res.data}\n"
         f"wrote {res.camchain}, {res.target}, {res.gimbal}, {res.ground_truth}\n"

@@ -1,10 +1,12 @@
-"""ROS1 ``.bag`` files and ROS2 bag folders (sqlite3 or mcap), through :mod:`rosbags`.
+"""Reading ROS1 ``.bag`` files and ROS2 bag folders (sqlite3 or mcap), through :mod:`rosbags`.
 
-Reading streams: :class:`BagImagePairs` makes one pass over the bag to collect the header stamps
-of the two image topics (and the optional ``sensor_msgs/JointState`` topic) and pair them, then
-each iteration makes a second pass that decodes images as they come and yields a
-:class:`~dcc_fg.io.folders.FramePair` as soon as both images of a pair have been read.  Only the
+Reading streams in two passes.  A first pass collects the header stamps of the image topics (and
+whatever else a reader needs, e.g. joint states or IMU samples) and pairs them; a second pass
+(:func:`stream_image_groups`) decodes the images as they come and hands over each group (a
+static/dynamic pair, or a single image) as soon as all of its images have been read.  Only the
 images waiting for their partner are held in memory, never the whole bag.
+:class:`BagImagePairs` yields :class:`~dcc_fg.io.folders.FramePair` objects this way,
+:class:`BagTopicImages` the images of one topic.
 
 Image messages: ``sensor_msgs/Image`` (``mono8``, ``mono16``, ``8UC1``, ``16UC1``, ``rgb8``,
 ``bgr8``, ``rgba8``, ``bgra8``) and ``sensor_msgs/CompressedImage`` (anything ``cv2.imdecode``
@@ -13,8 +15,9 @@ reads).  Decoded images are (H, W) grey or (H, W, 3|4) BGR(A), uint8 or uint16, 
 stamp is zero).  Joint angles are ``JointState.position`` (radians), in the order of
 ``joint_names`` if given, else as recorded.
 
-Writers (:func:`write_ros1_bag`, :func:`write_ros2_bag`) put image pairs and joint states into
-new bags, for tests and simulators.
+Corrupt or truncated bags raise ``ValueError`` naming the bag; only the exceptions that rosbags
+and its storage raise for bad files (:data:`BAG_ERRORS`) are turned into that message, so a
+programming error still ends in its own traceback.  Writing: :mod:`dcc_fg.io.bag_writer`.
 """
 
 from __future__ import annotations
@@ -22,10 +25,11 @@ from __future__ import annotations
 import logging
 import sqlite3
 import struct
-from collections.abc import Iterable, Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, NamedTuple
 
 import cv2
 import numpy as np
@@ -33,12 +37,9 @@ from numpy.typing import NDArray
 from rosbags.highlevel import AnyReader, AnyReaderError
 from rosbags.interfaces import Connection
 from rosbags.rosbag1 import ReaderError as Rosbag1ReaderError
-from rosbags.rosbag1 import Writer as Rosbag1Writer
 from rosbags.rosbag2 import ReaderError as Rosbag2ReaderError
-from rosbags.rosbag2 import StoragePlugin
-from rosbags.rosbag2 import Writer as Rosbag2Writer
+from rosbags.serde import SerdeError
 from rosbags.typesys import Stores, get_typestore
-from rosbags.typesys.store import Typestore
 
 from dcc_fg.io.folders import FramePair
 from dcc_fg.io.pairing import DEFAULT_TOLERANCE_NS, Pairing, check_pairing, nearest_within, pair_timestamps
@@ -48,30 +49,39 @@ log = logging.getLogger(__name__)
 IMAGE = "sensor_msgs/msg/Image"
 COMPRESSED_IMAGE = "sensor_msgs/msg/CompressedImage"
 JOINT_STATE = "sensor_msgs/msg/JointState"
+IMAGE_TYPES = (IMAGE, COMPRESSED_IMAGE)
 ROS1_MAGIC = b"#ROSBAG V2.0"
 
 try:  # rosbags reads sqlite3 bags through apsw when it is installed
-    from apsw import Error as _ApswError
+    from apsw import Error as ApswError
 except ImportError:  # pragma: no cover
-    _ApswError = sqlite3.DatabaseError  # type: ignore[misc,assignment]
+    ApswError = sqlite3.DatabaseError  # type: ignore[misc,assignment]
 
-#: Errors rosbags (and the storage below it) raise on corrupt or truncated bags.
-_BAG_ERRORS = (
-    _ApswError,
+#: What rosbags (and the storage below it) raise on corrupt or truncated bags: its reader errors,
+#: sqlite's and apsw's database errors, and the low-level read errors of a file cut short.
+#: Deserialization errors (``SerdeError``) reach us as ``AnyReaderError``.
+BAG_ERRORS: tuple[type[BaseException], ...] = (
+    ApswError,
     AnyReaderError,
     Rosbag1ReaderError,
     Rosbag2ReaderError,
+    SerdeError,
     sqlite3.DatabaseError,
     struct.error,
     EOFError,
     OSError,
-    KeyError,
-    IndexError,
-    AssertionError,
 )
 
 _CHANNELS = {"mono8": 1, "8UC1": 1, "mono16": 1, "16UC1": 1, "rgb8": 3, "bgr8": 3, "8UC3": 3, "rgba8": 4, "bgra8": 4}
 _DTYPES = {"mono16": np.uint16, "16UC1": np.uint16}
+
+
+class StampedImage(NamedTuple):
+    """A decoded image, where it came from (``<bag>: topic <t> at <ns> ns``) and its header stamp (ns)."""
+
+    image: NDArray[np.generic]
+    where: str
+    stamp_ns: int
 
 
 def is_bag(path: str | Path) -> bool:
@@ -90,11 +100,11 @@ def is_bag(path: str | Path) -> bool:
     return False
 
 
-def _reader(path: Path) -> AnyReader:
-    """An unopened AnyReader; the Humble typestore decodes bags without message definitions."""
+def bag_reader(path: Path) -> AnyReader:
+    """An unopened AnyReader (a context manager); the Humble typestore decodes bags without message definitions."""
     try:
         return AnyReader([path], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
-    except _BAG_ERRORS as exc:
+    except BAG_ERRORS as exc:
         raise ValueError(f"{path}: cannot open bag ({exc})") from None
 
 
@@ -149,10 +159,10 @@ def decode_image(msg: Any, msgtype: str, where: str) -> NDArray[np.generic]:
 @contextmanager
 def open_bag(path: Path) -> Iterator[AnyReader]:
     """An opened AnyReader; a truncated or corrupt bag -> ValueError naming it."""
-    reader = _reader(path)
+    reader = bag_reader(path)
     try:
         reader.open()
-    except _BAG_ERRORS as exc:
+    except BAG_ERRORS as exc:
         raise ValueError(f"{path}: truncated or corrupt bag, cannot open it ({exc})") from None
     try:
         yield reader
@@ -168,14 +178,86 @@ def bag_messages(path: Path, reader: AnyReader, conns: list[Connection]) -> Iter
             item = next(it)
         except StopIteration:
             return
-        except _BAG_ERRORS as exc:
+        except BAG_ERRORS as exc:
             raise ValueError(f"{path}: truncated or corrupt bag ({type(exc).__name__}: {exc})") from None
         conn, t, raw = item
         try:
             msg = reader.deserialize(raw, conn.msgtype)
-        except _BAG_ERRORS as exc:
+        except BAG_ERRORS as exc:
             raise ValueError(f"{path}: topic {conn.topic}: message at {t} ns does not deserialize ({exc})") from None
         yield conn, t, msg
+
+
+def image_topic_connections(reader: AnyReader, path: Path, topic: str, hint: str = "") -> list[Connection]:
+    """The connections of image ``topic``; ValueError naming the bag and topic if it is missing
+    (listing the image topics, then ``hint``) or holds something other than images."""
+    conns = [c for c in reader.connections if c.topic == topic]
+    if not conns:
+        images = sorted({c.topic for c in reader.connections if c.msgtype in IMAGE_TYPES})
+        raise ValueError(
+            f"{path}: topic {topic} not found (image topics in the bag: {', '.join(images) or 'none'}{hint})"
+        )
+    bad = [c.msgtype for c in conns if c.msgtype not in IMAGE_TYPES]
+    if bad:
+        raise ValueError(f"{path}: topic {topic} has type {bad[0]}, not sensor_msgs/Image or CompressedImage")
+    return conns
+
+
+def stream_image_groups(
+    path: Path,
+    topics: Sequence[str],
+    groups: Sequence[Sequence[int]],
+    convert: Callable[[NDArray[np.generic]], NDArray[np.generic]] | None = None,
+) -> Iterator[tuple[int, list[StampedImage]]]:
+    """Second pass of a bag: decode the images of ``groups`` and yield each group once it is complete.
+
+    Args:
+        path: the bag.
+        topics: image topics (already checked with :func:`image_topic_connections`).
+        groups: per group, the index of its message within each topic's message sequence (in the
+            order of ``topics``), e.g. the ``(i, j)`` pairs of a :class:`~dcc_fg.io.pairing.Pairing`.
+        convert: applied to each decoded image before it waits for its partner (e.g. to grey).
+
+    Yields:
+        ``(group index, images in the order of topics)``, in the order in which the last image of
+        each group appears in the bag; messages outside every group are skipped undecoded.
+    """
+    group_of = [{idx[k]: n for n, idx in enumerate(groups)} for k in range(len(topics))]
+    slot = {topic: k for k, topic in enumerate(topics)}
+    count = [0] * len(topics)
+    pending: dict[int, dict[int, StampedImage]] = {}
+    with open_bag(path) as reader:
+        conns = [c for c in reader.connections if c.topic in slot]
+        for conn, t, msg in bag_messages(path, reader, conns):
+            k = slot[conn.topic]
+            n = group_of[k].get(count[k])
+            count[k] += 1
+            if n is None:
+                continue
+            ts = stamp_ns(msg, t)
+            where = f"{path}: topic {conn.topic} at {ts} ns"
+            img = decode_image(msg, conn.msgtype, where)
+            pending.setdefault(n, {})[k] = StampedImage(convert(img) if convert else img, where, ts)
+            if len(pending[n]) == len(topics):
+                got = pending.pop(n)
+                yield n, [got[i] for i in range(len(topics))]
+
+
+def joint_state_topic(reader: AnyReader, path: Path, joint_topic: str | None) -> str | None:
+    """The ``JointState`` topic to read: ``joint_topic`` checked, the only one for ``"auto"``, or None."""
+    if joint_topic is None:
+        return None
+    if joint_topic == "auto":
+        topics = sorted({c.topic for c in reader.connections if c.msgtype == JOINT_STATE})
+        if len(topics) > 1:
+            raise ValueError(f"{path}: several JointState topics ({', '.join(topics)}); name one")
+        return topics[0] if topics else None
+    conns = [c for c in reader.connections if c.topic == joint_topic]
+    if not conns:
+        raise ValueError(f"{path}: topic {joint_topic} not found")
+    if any(c.msgtype != JOINT_STATE for c in conns):
+        raise ValueError(f"{path}: topic {joint_topic} is not sensor_msgs/JointState")
+    return joint_topic
 
 
 class BagImagePairs:
@@ -222,12 +304,13 @@ class BagImagePairs:
         stamps: dict[str, list[int]] = {static_topic: [], dynamic_topic: []}
         joint_stamps: list[int] = []
         joint_rows: list[NDArray[np.float64]] = []
-        with self._open() as reader:
-            conns = self._image_connections(reader)
-            self.joint_topic = self._joint_topic(reader, joint_topic)
+        hint = "; set 'rostopic' in the camchain"
+        with open_bag(self.path) as reader:
+            conns = [c for topic in stamps for c in image_topic_connections(reader, self.path, topic, hint)]
+            self.joint_topic = joint_state_topic(reader, self.path, joint_topic)
             if self.joint_topic is not None:
                 conns += [c for c in reader.connections if c.topic == self.joint_topic]
-            for conn, t, msg in self._messages(reader, conns):
+            for conn, t, msg in bag_messages(self.path, reader, conns):
                 if conn.topic == self.joint_topic:
                     joint_stamps.append(stamp_ns(msg, t))
                     joint_rows.append(self._joint_positions(msg, t))
@@ -248,50 +331,6 @@ class BagImagePairs:
                 raise ValueError(f"{self.path}: topic {self.joint_topic} has no messages")
             self.joints = (np.array(joint_stamps, dtype=np.int64), np.stack(joint_rows))
 
-    # -- helpers -------------------------------------------------------------------------------
-
-    @contextmanager
-    def _open(self) -> Iterator[AnyReader]:
-        with open_bag(self.path) as reader:
-            yield reader
-
-    def _messages(self, reader: AnyReader, conns: list[Connection]) -> Iterator[tuple[Connection, int, Any]]:
-        """(connection, record time ns, deserialized message); corrupt data -> ValueError naming the bag."""
-        return bag_messages(self.path, reader, conns)
-
-    def _image_connections(self, reader: AnyReader) -> list[Connection]:
-        out = []
-        for topic in (self.static_topic, self.dynamic_topic):
-            conns = [c for c in reader.connections if c.topic == topic]
-            if not conns:
-                images = sorted({c.topic for c in reader.connections if c.msgtype in (IMAGE, COMPRESSED_IMAGE)})
-                raise ValueError(
-                    f"{self.path}: topic {topic} not found (image topics in the bag: {', '.join(images) or 'none'}; "
-                    "set 'rostopic' in the camchain)"
-                )
-            bad = [c.msgtype for c in conns if c.msgtype not in (IMAGE, COMPRESSED_IMAGE)]
-            if bad:
-                raise ValueError(
-                    f"{self.path}: topic {topic} has type {bad[0]}, not sensor_msgs/Image or CompressedImage"
-                )
-            out += conns
-        return out
-
-    def _joint_topic(self, reader: AnyReader, joint_topic: str | None) -> str | None:
-        if joint_topic is None:
-            return None
-        if joint_topic == "auto":
-            topics = sorted({c.topic for c in reader.connections if c.msgtype == JOINT_STATE})
-            if len(topics) > 1:
-                raise ValueError(f"{self.path}: several JointState topics ({', '.join(topics)}); name one")
-            return topics[0] if topics else None
-        conns = [c for c in reader.connections if c.topic == joint_topic]
-        if not conns:
-            raise ValueError(f"{self.path}: topic {joint_topic} not found")
-        if any(c.msgtype != JOINT_STATE for c in conns):
-            raise ValueError(f"{self.path}: topic {joint_topic} is not sensor_msgs/JointState")
-        return joint_topic
-
     def _joint_positions(self, msg: Any, t: int) -> NDArray[np.float64]:
         pos = np.asarray(msg.position, dtype=np.float64)
         if self.joint_names is None:
@@ -304,39 +343,19 @@ class BagImagePairs:
                 f"{self.path}: topic {self.joint_topic} at {t} ns has joints {names}, not all of {self.joint_names}"
             ) from None
 
-    # -- streaming -------------------------------------------------------------------------------
-
     def __len__(self) -> int:
         return len(self.pairing.pairs)
 
     def __iter__(self) -> Iterator[FramePair]:
         """Second pass: yield the pairs in the order their second image appears in the bag."""
-        pair_of = {
-            self.static_topic: {i: n for n, (i, _) in enumerate(self.pairing.pairs)},
-            self.dynamic_topic: {j: n for n, (_, j) in enumerate(self.pairing.pairs)},
-        }
         pair_stamps = [self._stamps[self.static_topic][i] for i, _ in self.pairing.pairs]
         jidx = nearest_within(pair_stamps, self.joints[0], self.tolerance_ns) if self.joints is not None else None
-        pending: dict[int, dict[str, tuple[NDArray[np.generic], str, int]]] = {}
-        count = {self.static_topic: 0, self.dynamic_topic: 0}
-        with self._open() as reader:
-            conns = self._image_connections(reader)
-            for conn, t, msg in self._messages(reader, conns):
-                k = count[conn.topic]
-                count[conn.topic] += 1
-                n = pair_of[conn.topic].get(k)
-                if n is None:
-                    continue
-                ts = stamp_ns(msg, t)
-                where = f"{self.path}: topic {conn.topic} at {ts} ns"
-                pending.setdefault(n, {})[conn.topic] = (decode_image(msg, conn.msgtype, where), where, ts)
-                if len(pending[n]) == 2:
-                    got = pending.pop(n)
-                    (s_img, s_where, s_ts), (d_img, d_where, d_ts) = got[self.static_topic], got[self.dynamic_topic]
-                    joints = None
-                    if self.joints is not None and jidx is not None and jidx[n] >= 0:
-                        joints = self.joints[1][jidx[n]].copy()
-                    yield FramePair(s_ts, s_img, d_img, joints, s_where, d_where, d_ts)
+        topics = (self.static_topic, self.dynamic_topic)
+        for n, (s, d) in stream_image_groups(self.path, topics, self.pairing.pairs):
+            joints = None
+            if self.joints is not None and jidx is not None and jidx[n] >= 0:
+                joints = self.joints[1][jidx[n]].copy()
+            yield FramePair(s.stamp_ns, s.image, d.image, joints, s.where, d.where, d.stamp_ns)
 
 
 def read_bag_pairs(
@@ -363,17 +382,7 @@ class BagTopicImages:
         self.path = Path(path)
         self.topic = topic
         with open_bag(self.path) as reader:
-            self._count = sum(c.msgcount for c in self._connections(reader))
-
-    def _connections(self, reader: AnyReader) -> list[Connection]:
-        conns = [c for c in reader.connections if c.topic == self.topic]
-        if not conns:
-            images = sorted({c.topic for c in reader.connections if c.msgtype in (IMAGE, COMPRESSED_IMAGE)})
-            raise ValueError(f"{self.path}: topic {self.topic} not found (image topics: {', '.join(images) or 'none'})")
-        bad = [c.msgtype for c in conns if c.msgtype not in (IMAGE, COMPRESSED_IMAGE)]
-        if bad:
-            raise ValueError(f"{self.path}: topic {self.topic} has type {bad[0]}, not sensor_msgs/Image")
-        return conns
+            self._count = sum(c.msgcount for c in image_topic_connections(reader, self.path, topic))
 
     def __len__(self) -> int:
         return self._count
@@ -381,141 +390,64 @@ class BagTopicImages:
     def __iter__(self) -> Iterator[tuple[int, NDArray[np.generic], str]]:
         """Yield ``(header stamp ns, image, where)``; one decoded image in memory at a time."""
         with open_bag(self.path) as reader:
-            for conn, t, msg in bag_messages(self.path, reader, self._connections(reader)):
+            conns = image_topic_connections(reader, self.path, self.topic)
+            for conn, t, msg in bag_messages(self.path, reader, conns):
                 ts = stamp_ns(msg, t)
                 where = f"{self.path}: topic {self.topic} at {ts} ns"
                 yield ts, decode_image(msg, conn.msgtype, where), where
 
 
-# ---------------------------------------------------------------------------------------------
-# Writing
-# ---------------------------------------------------------------------------------------------
+IMU_TYPE = "sensor_msgs/msg/Imu"
 
 
-def _header(typestore: Typestore, stamp: int, frame_id: str) -> Any:
-    types = typestore.types
-    time = types["builtin_interfaces/msg/Time"](sec=stamp // 1_000_000_000, nanosec=stamp % 1_000_000_000)
-    fields = {name for name, _ in typestore.fielddefs["std_msgs/msg/Header"][1]}
-    extra = {"seq": 0} if "seq" in fields else {}
-    return types["std_msgs/msg/Header"](stamp=time, frame_id=frame_id, **extra)
+@dataclass(frozen=True)
+class ImuImageStamps:
+    """First pass of a VIO bag: the whole IMU topic (in bag order, unvalidated) and the image stamps.
 
-
-def image_message(
-    typestore: Typestore, img: NDArray[np.generic], stamp: int, frame_id: str, compressed: bool = False
-) -> tuple[str, Any]:
-    """(msgtype, message) for a numpy image; grey -> mono8 / mono16, 3 channels -> bgr8,
-    4 channels -> bgra8; ``compressed`` gives a PNG ``CompressedImage``."""
-    header = _header(typestore, stamp, frame_id)
-    if compressed:
-        ok, buf = cv2.imencode(".png", img)
-        if not ok:
-            raise ValueError(f"cannot PNG-encode an image of shape {img.shape} {img.dtype}")
-        msg = typestore.types[COMPRESSED_IMAGE](header=header, format="png", data=buf.reshape(-1).astype(np.uint8))
-        return COMPRESSED_IMAGE, msg
-    img = np.ascontiguousarray(img)
-    channels = 1 if img.ndim == 2 else img.shape[2]
-    encodings = {(np.dtype(np.uint8), 1): "mono8", (np.dtype(np.uint16), 1): "mono16"}
-    encodings.update({(np.dtype(np.uint8), 3): "bgr8", (np.dtype(np.uint8), 4): "bgra8"})
-    key = (img.dtype, channels)
-    if key not in encodings:
-        raise ValueError(f"no sensor_msgs/Image encoding for {img.dtype} images with {channels} channels")
-    data = img.astype(img.dtype.newbyteorder("<"), copy=False).view(np.uint8).reshape(-1)
-    msg = typestore.types[IMAGE](
-        header=header,
-        height=img.shape[0],
-        width=img.shape[1],
-        encoding=encodings[key],
-        is_bigendian=0,
-        step=img.shape[1] * channels * img.dtype.itemsize,
-        data=data,
-    )
-    return IMAGE, msg
-
-
-def joint_state_message(typestore: Typestore, q: NDArray[np.float64], stamp: int, names: Sequence[str]) -> Any:
-    """``sensor_msgs/JointState`` with positions ``q`` (radians)."""
-    return typestore.types[JOINT_STATE](
-        header=_header(typestore, stamp, ""),
-        name=list(names),
-        position=np.asarray(q, dtype=np.float64),
-        velocity=np.zeros(0),
-        effort=np.zeros(0),
-    )
-
-
-def _write(
-    path: Path,
-    frames: Iterable[FramePair],
-    ros: Literal[1, 2],
-    storage: Literal["sqlite3", "mcap"],
-    static_topic: str,
-    dynamic_topic: str,
-    joint_topic: str,
-    compressed: bool,
-) -> Path:
-    typestore = get_typestore(Stores.ROS1_NOETIC if ros == 1 else Stores.ROS2_HUMBLE)
-    writer: Rosbag1Writer | Rosbag2Writer
-    if ros == 1:
-        writer = Rosbag1Writer(path)
-    else:
-        plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
-        writer = Rosbag2Writer(path, version=Rosbag2Writer.VERSION_LATEST, storage_plugin=plugin)
-
-    def serialize(msg: Any, msgtype: str) -> bytes | memoryview:
-        return typestore.serialize_ros1(msg, msgtype) if ros == 1 else typestore.serialize_cdr(msg, msgtype)
-
-    conns: dict[str, Any] = {}
-    with writer:
-
-        def conn(topic: str, msgtype: str) -> Any:
-            if topic not in conns:
-                conns[topic] = writer.add_connection(topic, msgtype, typestore=typestore)
-            return conns[topic]
-
-        for fr in frames:
-            td = fr.dynamic_timestamp_ns or fr.timestamp_ns
-            for topic, img, stamp, frame in (
-                (static_topic, fr.static, fr.timestamp_ns, "cam0"),
-                (dynamic_topic, fr.dynamic, td, "cam1"),
-            ):
-                msgtype, msg = image_message(typestore, img, stamp, frame, compressed)
-                writer.write(conn(topic, msgtype), stamp, serialize(msg, msgtype))
-            if fr.joints is not None:
-                names = [f"joint_{k + 1}" for k in range(len(fr.joints))]
-                msg = joint_state_message(typestore, fr.joints, fr.timestamp_ns, names)
-                writer.write(conn(joint_topic, JOINT_STATE), fr.timestamp_ns, serialize(msg, JOINT_STATE))
-    return path
-
-
-def write_ros1_bag(
-    path: str | Path,
-    frames: Iterable[FramePair],
-    static_topic: str = "/cam0/image_raw",
-    dynamic_topic: str = "/cam1/image_raw",
-    joint_topic: str = "/gimbal/joint_states",
-    compressed: bool = False,
-) -> Path:
-    """Write frames to a new ROS1 bag file (``rosbags.rosbag1.Writer``, ROS1 Noetic types).
-
-    Each frame gives one image message per camera topic (record time = header stamp: the
-    frame's ``timestamp_ns`` for the static image, ``dynamic_timestamp_ns`` or ``timestamp_ns``
-    for the dynamic one) and, if it has joints, a ``JointState`` (names ``joint_1..joint_L``) at
-    the static stamp.  ``compressed`` writes PNG ``CompressedImage`` messages.
+    Attributes:
+        imu_t_ns: (N,) header stamps, ns; imu_acc: (N, 3) ``linear_acceleration``, m/s^2;
+            imu_gyro: (N, 3) ``angular_velocity``, rad/s.
+        image_stamps: per image topic, the header stamps in bag order, ns.
     """
-    return _write(Path(path), frames, 1, "sqlite3", static_topic, dynamic_topic, joint_topic, compressed)
+
+    imu_t_ns: NDArray[np.int64]
+    imu_acc: NDArray[np.float64]
+    imu_gyro: NDArray[np.float64]
+    image_stamps: dict[str, list[int]]
 
 
-def write_ros2_bag(
-    path: str | Path,
-    frames: Iterable[FramePair],
-    static_topic: str = "/cam0/image_raw",
-    dynamic_topic: str = "/cam1/image_raw",
-    joint_topic: str = "/gimbal/joint_states",
-    compressed: bool = False,
-    storage: Literal["sqlite3", "mcap"] = "sqlite3",
-) -> Path:
-    """Write frames to a new ROS2 bag folder (``rosbags.rosbag2.Writer``, Humble types).
+def _typed_connections(reader: AnyReader, path: Path, topic: str, accepted: tuple[str, ...]) -> list[Connection]:
+    """The connections of ``topic``; ValueError listing the bag's topics if it is missing or of another type."""
+    found = [c for c in reader.connections if c.topic == topic]
+    if not found:
+        available = sorted({f"{c.topic} ({c.msgtype})" for c in reader.connections})
+        raise ValueError(f"{path}: topic {topic} not found; the bag has: {', '.join(available)}")
+    for c in found:
+        if c.msgtype not in accepted:
+            raise ValueError(f"{path}: topic {topic} has type {c.msgtype}, expected {' or '.join(accepted)}")
+    return found
 
-    Same messages as :func:`write_ros1_bag`; ``storage`` selects the sqlite3 or mcap plugin.
+
+def scan_imu_and_image_stamps(path: Path, imu_topic: str, image_topics: Sequence[str]) -> ImuImageStamps:
+    """Read the ``sensor_msgs/Imu`` topic and the header stamps of the image topics (one pass).
+
+    Raises:
+        ValueError: naming the bag and topic for a missing topic or a wrong message type (listing
+            the bag's topics), naming the bag for a truncated or corrupt file.
     """
-    return _write(Path(path), frames, 2, storage, static_topic, dynamic_topic, joint_topic, compressed)
+    t_imu: list[int] = []
+    rows: list[tuple[float, ...]] = []
+    stamps: dict[str, list[int]] = {topic: [] for topic in image_topics}
+    with open_bag(path) as reader:
+        conns = _typed_connections(reader, path, imu_topic, (IMU_TYPE,))
+        for topic in image_topics:
+            conns += _typed_connections(reader, path, topic, IMAGE_TYPES)
+        for conn, t, msg in bag_messages(path, reader, conns):
+            if conn.topic == imu_topic:
+                t_imu.append(stamp_ns(msg, t))
+                a, w = msg.linear_acceleration, msg.angular_velocity
+                rows.append((a.x, a.y, a.z, w.x, w.y, w.z))
+            else:
+                stamps[conn.topic].append(stamp_ns(msg, t))
+    data = np.array(rows, dtype=float).reshape(-1, 6)
+    return ImuImageStamps(np.array(t_imu, dtype=np.int64), data[:, :3], data[:, 3:], stamps)

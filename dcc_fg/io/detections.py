@@ -1,27 +1,22 @@
-"""Detection folders in yac's layout, for users with their own corner detector.
+"""yac detection CSV files (one per camera frame), as raw tables.
 
-Layout: ``cam0/<timestamp_ns>.csv`` (static camera), ``cam1/<timestamp_ns>.csv`` (dynamic camera),
-optional ``joints.csv`` (``timestamp_ns,theta_1,...,theta_L``, radians).  Each CSV has the header
+Layout of a detection folder: ``cam0/<timestamp_ns>.csv`` (static camera),
+``cam1/<timestamp_ns>.csv`` (dynamic camera), optional ``joints.csv``
+(``timestamp_ns,theta_1,...,theta_L``, radians).  Each CSV has the header
 ``#ts,tag_rows,tag_cols,tag_size,tag_spacing,kp_x,kp_y,p_x,p_y,p_z,tag_id,corner_idx`` and one row
 per detected AprilGrid corner: ``kp`` is the pixel (u, v) in the distorted image, ``p`` the corner
-in the target frame (metres), point id = 4 * tag_id + corner_idx (Kalibr order, see
-:mod:`dcc_fg.targets`).  A file with only the header is a frame without detections.
+in the target frame (metres), point id = 4 * tag_id + corner_idx (Kalibr order).  A file with only
+the header is a frame without detections.  :mod:`dcc_fg.sources.detections` turns the tables into
+observations and snapshots.
 """
 
 from __future__ import annotations
 
-import logging
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
-
-from dcc_fg.data import Observation, Snapshot
-from dcc_fg.io.folders import DYNAMIC_DIR, JOINTS_FILE, STATIC_DIR, list_timestamped, read_joints_csv
-from dcc_fg.io.pairing import DEFAULT_TOLERANCE_NS, Pairing, check_pairing, nearest_within, pair_timestamps
-from dcc_fg.targets import TargetGeometry
-
-log = logging.getLogger(__name__)
 
 COLUMNS = (
     "ts",
@@ -38,8 +33,27 @@ COLUMNS = (
     "corner_idx",
 )
 HEADER = "#" + ",".join(COLUMNS)
-#: Tolerance (metres) when comparing p_x, p_y, p_z with the target geometry (yac writes 6 decimals).
-POINT_TOLERANCE_M = 2e-6
+
+
+@dataclass(frozen=True)
+class DetectionTable:
+    """The rows of one yac detection file.
+
+    Attributes:
+        timestamp_ns: the ``ts`` column (the same on every row), or None for a file without rows.
+        grid: ``(tag_rows, tag_cols, tag_size, tag_spacing)`` of the AprilGrid (the same on every
+            row; tag size in metres, spacing as a ratio), or None without rows.
+        pixels: (N, 2) ``kp_x, kp_y`` in the distorted image, pixels.
+        points: (N, 3) ``p_x, p_y, p_z``, target frame, metres.
+        tag_id, corner_idx: (N,) int64; ``corner_idx`` is checked to be 0..3.
+    """
+
+    timestamp_ns: int | None
+    grid: tuple[int, int, float, float] | None
+    pixels: NDArray[np.float64]
+    points: NDArray[np.float64]
+    tag_id: NDArray[np.int64]
+    corner_idx: NDArray[np.int64]
 
 
 def is_detection_csv(path: Path) -> bool:
@@ -52,24 +66,12 @@ def is_detection_csv(path: Path) -> bool:
     return first.strip().replace(" ", "") == HEADER
 
 
-def read_detection_csv(
-    path: str | Path, target: TargetGeometry | None = None
-) -> tuple[int | None, Observation, TargetGeometry | None]:
-    """Read one yac detection file.
-
-    Args:
-        path: the CSV file.
-        target: expected target; if None it is inferred from the file's first row.
-
-    Returns:
-        (timestamp_ns from the ``ts`` column or None if the file has no rows, the observation,
-        the target geometry of the rows or ``target`` / None if the file has no rows).
+def read_detection_table(path: str | Path) -> DetectionTable:
+    """Parse one yac detection file.
 
     Raises:
-        ValueError: naming the file (and line) for a wrong header, unparsable numbers, rows with
-            different target parameters or timestamps, a corner index outside 0..3, a tag id
-            outside the grid, or target-frame points (p_x, p_y, p_z) that disagree with
-            :attr:`TargetGeometry.points`.
+        ValueError: naming the file for a wrong header, unparsable numbers, a wrong column
+            count, rows with different timestamps or grid parameters, or a corner index outside 0..3.
     """
     path = Path(path)
     with path.open() as f:
@@ -78,7 +80,8 @@ def read_detection_csv(
             raise ValueError(f"{path}: header must be '{HEADER}', got '{header}'")
         body = f.read()
     if not body.strip():
-        return None, Observation(np.zeros(0, dtype=np.int64), np.zeros((0, 2))), target
+        empty_i = np.zeros(0, dtype=np.int64)
+        return DetectionTable(None, None, np.zeros((0, 2)), np.zeros((0, 3)), empty_i, empty_i)
     try:
         data = np.loadtxt(body.splitlines(), delimiter=",", ndmin=2, dtype=np.float64)
     except ValueError as exc:
@@ -93,101 +96,35 @@ def read_detection_csv(
     if params.shape[0] != 1:
         raise ValueError(f"{path}: rows disagree on tag_rows, tag_cols, tag_size, tag_spacing")
     rows, cols, size, spacing = params[0]
-    file_target = TargetGeometry.aprilgrid(int(cols), int(rows), float(size), float(spacing))
-    if target is None:
-        target = file_target
-    elif (target.target_type, target.cols, target.rows) != ("aprilgrid", file_target.cols, file_target.rows) or (
-        not np.isclose(target.tag_size, file_target.tag_size, atol=1e-6)
-        or not np.isclose(target.tag_spacing, file_target.tag_spacing, atol=1e-6)
-    ):
-        raise ValueError(
-            f"{path}: target in the file (aprilgrid {file_target.cols}x{file_target.rows} tags, size "
-            f"{file_target.tag_size}, spacing {file_target.tag_spacing}) differs from the expected {target}"
-        )
-    tag_id = data[:, 10].astype(np.int64)
     corner = data[:, 11].astype(np.int64)
     if ((corner < 0) | (corner > 3)).any():
         raise ValueError(f"{path}: corner_idx must be 0..3")
-    n_tags = target.cols * target.rows
-    if ((tag_id < 0) | (tag_id >= n_tags)).any():
-        bad = int(tag_id[(tag_id < 0) | (tag_id >= n_tags)][0])
-        raise ValueError(f"{path}: tag_id {bad} outside the {target.cols}x{target.rows} grid")
-    ids = 4 * tag_id + corner
-    if np.unique(ids).size != ids.size:
-        raise ValueError(f"{path}: a corner (tag_id, corner_idx) appears twice")
-    err = np.abs(target.points[ids] - data[:, 7:10]).max(axis=1)
-    if (err > POINT_TOLERANCE_M).any():
-        k = int(np.argmax(err))
-        raise ValueError(
-            f"{path}:{k + 2}: p_x,p_y,p_z = {data[k, 7:10].tolist()} for tag {tag_id[k]} corner {corner[k]} "
-            f"disagree with the target geometry {target.points[ids[k]].tolist()} (off by {err[k]:.3g} m)"
-        )
-    order = np.argsort(ids)
-    return stamps.pop(), Observation(ids[order], data[order, 5:7]), target
+    return DetectionTable(
+        timestamp_ns=stamps.pop(),
+        grid=(int(rows), int(cols), float(size), float(spacing)),
+        pixels=data[:, 5:7],
+        points=data[:, 7:10],
+        tag_id=data[:, 10].astype(np.int64),
+        corner_idx=corner,
+    )
 
 
-def read_detection_folder(
-    root: str | Path,
-    target: TargetGeometry | None = None,
-    tolerance_ns: int = DEFAULT_TOLERANCE_NS,
-) -> tuple[list[Snapshot], TargetGeometry, Pairing]:
-    """Read a yac detection folder into snapshots.
-
-    Args:
-        root: folder with ``cam0/``, ``cam1/`` and optionally ``joints.csv``.
-        target: expected target; None infers it from the CSV headers (every file must agree).
-        tolerance_ns: pairing tolerance between cam0 and cam1 timestamps (file names), ns.
-
-    Returns:
-        (snapshots at the cam0 timestamps in time order, with joints nearest in time within the
-        tolerance if ``joints.csv`` exists; the target geometry; the pairing, whose unpaired lists
-        report frames without a partner).  Snapshots may have empty observations.
-
-    Raises:
-        ValueError: naming the folder or file at fault (see :func:`read_detection_csv`), when
-            the target cannot be inferred (every file empty), or when no timestamps pair.
-    """
-    root = Path(root)
-    dirs = (root / STATIC_DIR, root / DYNAMIC_DIR)
-    for d in dirs:
-        if not d.is_dir():
-            raise ValueError(f"{d}: folder missing (detection folder layout: cam0/<ns>.csv, cam1/<ns>.csv)")
-    files = [list_timestamped(d, (".csv",)) for d in dirs]
-    obs: list[dict[int, Observation]] = [{}, {}]
-    for cam in (0, 1):
-        for stamp, path in files[cam].items():
-            ts, ob, t = read_detection_csv(path, target)
-            if ts is not None and ts != stamp:
-                raise ValueError(f"{path}: column ts = {ts} differs from the file name timestamp {stamp}")
-            target = t if t is not None else target
-            obs[cam][stamp] = ob
-    if target is None:
-        raise ValueError(f"{root}: every detection file is empty; cannot infer the target")
-    s_ts, d_ts = sorted(obs[0]), sorted(obs[1])
-    pairing = pair_timestamps(s_ts, d_ts, tolerance_ns)
-    check_pairing(pairing, len(s_ts), len(d_ts), str(dirs[0]), str(dirs[1]))
-    joints: tuple[NDArray[np.int64], NDArray[np.float64]] | None = None
-    if (root / JOINTS_FILE).is_file():
-        joints = read_joints_csv(root / JOINTS_FILE)
-    stamps = [s_ts[i] for i, _ in pairing.pairs]
-    jidx = nearest_within(stamps, joints[0], tolerance_ns) if joints is not None else None
-    snapshots = []
-    for n, (i, j) in enumerate(pairing.pairs):
-        q = joints[1][jidx[n]].copy() if joints is not None and jidx is not None and jidx[n] >= 0 else None
-        snapshots.append(Snapshot(s_ts[i], obs[0][s_ts[i]], obs[1][d_ts[j]], q))
-    return snapshots, target, pairing
-
-
-def write_detection_csv(path: str | Path, timestamp_ns: int, obs: Observation, target: TargetGeometry) -> None:
-    """Write one observation of an AprilGrid in yac's CSV layout (tests, simulators)."""
-    if target.target_type != "aprilgrid":
-        raise ValueError("yac detection files describe AprilGrids only")
-    pts = target.points
+def write_detection_table(
+    path: str | Path,
+    timestamp_ns: int,
+    grid: tuple[int, int, float, float],
+    ids: NDArray[np.int64],
+    pixels: NDArray[np.float64],
+    points: NDArray[np.float64],
+) -> None:
+    """Write one frame's corners in yac's layout: point ``ids`` (4 * tag_id + corner_idx), their
+    ``pixels`` (N, 2) and target-frame ``points`` (N, 3, metres) on the AprilGrid ``grid``
+    ``(tag_rows, tag_cols, tag_size, tag_spacing)``."""
+    rows, cols, size, spacing = grid
     with Path(path).open("w") as f:
         f.write(HEADER + "\n")
-        for pid, (u, v) in zip(obs.ids, obs.pixels, strict=True):
-            p = pts[pid]
+        for pid, (u, v), p in zip(ids, pixels, points, strict=True):
             f.write(
-                f"{timestamp_ns},{target.rows},{target.cols},{target.tag_size:.6f},{target.tag_spacing:.6f},"
+                f"{timestamp_ns},{rows},{cols},{size:.6f},{spacing:.6f},"
                 f"{u:.10f},{v:.10f},{p[0]:.6f},{p[1]:.6f},{p[2]:.6f},{pid // 4},{pid % 4}\n"
             )

@@ -1,16 +1,49 @@
-"""Writers for result files (atomic: a temporary file renamed over the target)."""
+"""Writers for result files (atomic: a temporary file renamed over the target) and their readers.
+
+Timestamps are integers in ns end to end: they are parsed as ``int`` from the text, never through
+a float (a float64 holds ns stamps near 1.4e18 only to within 256 ns).
+"""
 
 from __future__ import annotations
 
 import io
 import json
+import os
+import tempfile
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from dcc_fg.model import _plain, write_text_atomic
+
+def write_text_atomic(path: Path, text: str) -> None:
+    """Write ``text`` to ``path`` through a temporary file and an atomic rename."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w") as f:
+            f.write(text)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def plain(obj: Any) -> Any:
+    """Convert numpy scalars / arrays inside ``obj`` to plain Python for YAML/JSON (non-finite -> None)."""
+    if isinstance(obj, dict):
+        return {str(k): plain(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [plain(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return plain(obj.tolist())
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, float) and not np.isfinite(obj):
+        return None
+    return obj
 
 
 def write_joint_angles_csv(path: Path, timestamps_ns: NDArray[np.int64], thetas: NDArray[np.float64]) -> None:
@@ -24,21 +57,23 @@ def write_joint_angles_csv(path: Path, timestamps_ns: NDArray[np.int64], thetas:
 
 
 def read_joint_angles_csv(path: Path) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
-    """Inverse of :func:`write_joint_angles_csv`."""
+    """Inverse of :func:`write_joint_angles_csv`: (N,) int64 stamps (ns, exact) and (N, L) angles (rad)."""
     path = Path(path)
     lines = [ln for ln in path.read_text().splitlines() if ln.strip()]
     if not lines or not lines[0].startswith("timestamp_ns"):
         raise ValueError(f"{path}: expected a header 'timestamp_ns,theta_1,...'")
-    rows = []
+    stamps: list[int] = []
+    rows: list[list[float]] = []
     for k, ln in enumerate(lines[1:], start=2):
+        first, *rest = ln.split(",")
         try:
-            rows.append([float(x) for x in ln.split(",")])
+            stamps.append(int(first))
+            rows.append([float(x) for x in rest])
         except ValueError:
             raise ValueError(f"{path}:{k}: not a number in '{ln}'") from None
-    arr = np.array(rows, dtype=float).reshape(len(rows), -1)
-    return arr[:, 0].astype(np.int64), arr[:, 1:]
+    return np.array(stamps, dtype=np.int64), np.array(rows, dtype=float).reshape(len(rows), -1)
 
 
 def write_json(path: Path, data: dict[str, Any]) -> None:
     """Pretty JSON with numpy values converted (NaN -> null)."""
-    write_text_atomic(Path(path), json.dumps(_plain(data), indent=2) + "\n")
+    write_text_atomic(Path(path), json.dumps(plain(data), indent=2) + "\n")

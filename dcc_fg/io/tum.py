@@ -1,7 +1,8 @@
 """TUM trajectory files: one pose per line, ``t[s] tx ty tz qx qy qz qw`` (``#`` comments allowed).
 
 A pose ``T_WI`` maps body/IMU points into the world frame (translation in metres, Hamilton
-quaternion x, y, z, w). Timestamps are written with nanosecond resolution.
+quaternion x, y, z, w). Timestamps are written with nanosecond resolution and read back as
+integer ns (never through a float).
 """
 
 from __future__ import annotations
@@ -13,23 +14,54 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from dcc_fg.model import write_text_atomic
+from dcc_fg.io.outputs import write_text_atomic
 
 NS = 1_000_000_000
+DEFAULT_COMMENT = "timestamp tx ty tz qx qy qz qw"
 
 
-def write_tum(path: str | Path, t_ns: NDArray[np.int64], T: NDArray[np.float64]) -> None:
-    """Write poses ``T`` (N, 4, 4) at times ``t_ns`` atomically."""
+def ns_to_text(t_ns: int) -> str:
+    """Seconds with exactly nine decimals from integer ns (``1.000000001`` for 1_000_000_001)."""
+    return f"{int(t_ns) // NS}.{int(t_ns) % NS:09d}"
+
+
+def tum_text(
+    t_ns: NDArray[np.int64],
+    T: NDArray[np.float64],
+    comment: str = DEFAULT_COMMENT,
+    quaternion_decimals: int = 9,
+    w_nonnegative: bool = False,
+) -> str:
+    """TUM lines for poses ``T`` (N, 4, 4) at times ``t_ns`` (N,) ns, after one ``# comment`` line.
+
+    Positions get 9 decimals, quaternions ``quaternion_decimals``; ``w_nonnegative`` picks the
+    sign of each quaternion with ``w >= 0`` (else scipy's choice).
+    """
     T = np.asarray(T, float).reshape(-1, 4, 4)
-    q = Rotation.from_matrix(T[:, :3, :3]).as_quat()  # x, y, z, w
+    q = Rotation.from_matrix(T[:, :3, :3]).as_quat(canonical=w_nonnegative)  # x, y, z, w
     buf = io.StringIO()
-    buf.write("# timestamp tx ty tz qx qy qz qw\n")
+    buf.write(f"# {comment}\n")
     for t, p, qq in zip(np.asarray(t_ns, dtype=np.int64), T[:, :3, 3], q, strict=True):
-        buf.write(f"{int(t) // NS}.{int(t) % NS:09d} " + " ".join(f"{x:.9f}" for x in (*p, *qq)) + "\n")
-    write_text_atomic(Path(path), buf.getvalue())
+        pos = " ".join(f"{x:.9f}" for x in p)
+        quat = " ".join(f"{x:.{quaternion_decimals}f}" for x in qq)
+        buf.write(f"{ns_to_text(int(t))} {pos} {quat}\n")
+    return buf.getvalue()
 
 
-def _ns(text: str) -> int:
+def write_tum(
+    path: str | Path,
+    t_ns: NDArray[np.int64],
+    T: NDArray[np.float64],
+    comment: str = DEFAULT_COMMENT,
+    quaternion_decimals: int = 9,
+    w_nonnegative: bool = False,
+) -> None:
+    """Write poses ``T`` (N, 4, 4) at times ``t_ns`` atomically (format of :func:`tum_text`)."""
+    write_text_atomic(Path(path), tum_text(t_ns, T, comment, quaternion_decimals, w_nonnegative))
+
+
+def text_to_ns(text: str) -> int:
+    """Integer ns of a decimal seconds string (``"-1.5"`` -> -1_500_000_000); digits past 9 decimals are cut."""
     whole, _, frac = text.partition(".")
     sign = -1 if whole.startswith("-") else 1
     return sign * (abs(int(whole)) * NS + int((frac + "000000000")[:9]))
@@ -47,7 +79,7 @@ def read_tum(path: str | Path) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
         if len(parts) != 8:
             raise ValueError(f"{path}:{k}: expected 8 columns 't tx ty tz qx qy qz qw', got {len(parts)}")
         try:
-            times.append(_ns(parts[0]))
+            times.append(text_to_ns(parts[0]))
             rows.append([float(x) for x in parts[1:]])
         except ValueError:
             raise ValueError(f"{path}:{k}: not a number in '{line}'") from None

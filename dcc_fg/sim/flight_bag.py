@@ -20,19 +20,22 @@ Images are rendered and written one frame at a time, in time order with the IMU.
 from __future__ import annotations
 
 import dataclasses
-import io
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 import yaml
 from numpy.typing import NDArray
+from tqdm import tqdm
 
-from dcc_fg.io.bag_writer import BagWriter, quaternion_xyzw
-from dcc_fg.io.outputs import write_joint_angles_csv
-from dcc_fg.model import GimbalCalibration, write_text_atomic
+from dcc_fg.data.vio import ImuConfig, load_imu_config
+from dcc_fg.io.bag_writer import BagWriter, joint_names
+from dcc_fg.io.outputs import write_joint_angles_csv, write_text_atomic
+from dcc_fg.io.tum import write_tum
+from dcc_fg.model import GimbalCalibration, load_calibration
 from dcc_fg.sim.flight_render import WorldRenderer, planes_from_world, render_flight
 from dcc_fg.sim.trajectory import (
     FlightConfig,
@@ -43,7 +46,6 @@ from dcc_fg.sim.trajectory import (
     flight_calibration,
     simulate_flight,
 )
-from dcc_fg.data.vio import ImuConfig
 from factors.camera import CameraModel
 
 START_NS = 1_600_000_000 * 1_000_000_000
@@ -81,18 +83,84 @@ def scale_camera(cam: CameraModel, scale: float) -> CameraModel:
     )
 
 
-def tum_text(t_ns: NDArray[np.int64], T_WI: NDArray[np.float64]) -> str:
-    """TUM lines ``t[s] tx ty tz qx qy qz qw`` with exact nanosecond times."""
-    buf = io.StringIO()
-    buf.write("# t[s] tx ty tz qx qy qz qw (body/IMU frame in W)\n")
-    for t, T in zip(t_ns, T_WI, strict=True):
-        q = quaternion_xyzw(T[:3, :3])
-        p = T[:3, 3]
-        buf.write(
-            f"{int(t) // 1_000_000_000}.{int(t) % 1_000_000_000:09d} {p[0]:.9f} {p[1]:.9f} {p[2]:.9f} "
-            f"{q[0]:.12f} {q[1]:.12f} {q[2]:.12f} {q[3]:.12f}\n"
-        )
-    return buf.getvalue()
+#: Comment line of ``ground_truth.tum``.
+TUM_COMMENT = "t[s] tx ty tz qx qy qz qw (body/IMU frame in W)"
+
+
+def scaled_flight_calibration(scale: float) -> GimbalCalibration:
+    """The flight's gimbal and cameras (:func:`flight_calibration`) at ``scale`` times the resolution."""
+    cal0 = flight_calibration()
+    assert cal0.static_camera is not None and cal0.dynamic_camera is not None
+    return dataclasses.replace(
+        cal0,
+        static_camera=scale_camera(cal0.static_camera, scale),
+        dynamic_camera=scale_camera(cal0.dynamic_camera, scale),
+    )
+
+
+def _write_flight_bag(
+    bag_path: Path,
+    fmt: Literal["ros1", "ros2"],
+    truth: FlightTruth,
+    frames: Iterator[tuple[int, NDArray[np.uint8], NDArray[np.uint8]]],
+    progress: bool,
+) -> tuple[int, float]:
+    """IMU, ground-truth pose and joints at every IMU sample, and the rendered image pairs at the
+    frame times, in time order (stamps ``START_NS`` + simulation time).
+
+    Returns:
+        (image pairs written, CPU seconds spent rendering them).
+    """
+    frame_set = {int(t): k for k, t in enumerate(truth.frame_t_ns)}
+    names = joint_names(truth.theta.shape[1])
+    render_s = 0.0
+    n_frames = 0
+    with (
+        tqdm(total=len(truth.frame_t_ns), unit="frame", desc="rendering", disable=not progress) as bar,
+        BagWriter(bag_path, 1 if fmt == "ros1" else 2) as bag,
+    ):
+        for i, t in enumerate(truth.t_ns):
+            stamp = START_NS + int(t)
+            bag.imu(IMU_TOPIC, stamp, truth.imu.acc[i], truth.imu.gyro[i], "imu0")
+            bag.pose(POSE_TOPIC, stamp, truth.T_WI[i], "world")
+            bag.joints(JOINT_TOPIC, stamp, truth.theta[i], names)
+            if int(t) in frame_set:
+                r0 = time.process_time()
+                t_frame, img_s, img_d = next(frames)
+                render_s += time.process_time() - r0
+                if t_frame != int(t):
+                    raise RuntimeError(f"rendered frame at {t_frame} ns, expected {int(t)} ns")
+                bag.image(STATIC_TOPIC, stamp, img_s, "cam0")
+                bag.image(DYNAMIC_TOPIC, stamp, img_d, "cam1")
+                n_frames += 1
+                bar.update(1)
+    return n_frames, render_s
+
+
+def _calibration_yaml(
+    cal: GimbalCalibration, imu: ImuConfig, truth: FlightTruth, config: FlightConfig, seed: int, scale: float
+) -> dict[str, Any]:
+    """``calibration.yaml``: the true chain and cameras, the ``imu:`` section and a ``flight:`` record."""
+    locked = bool(np.ptp(truth.theta, axis=0).max() == 0.0)
+    d = cal.to_dict()
+    d["imu"] = imu.to_dict()
+    d["flight"] = {
+        "seed": seed,
+        "duration_s": config.duration,
+        "distance_m": truth.distance,
+        "scale": scale,
+        "start_ns": START_NS,
+        "gimbal": "locked" if locked else "moving",
+        "joints_locked": [float(x) for x in truth.theta[0]] if locked else None,
+        "topics": {
+            "imu": IMU_TOPIC,
+            "static": STATIC_TOPIC,
+            "dynamic": DYNAMIC_TOPIC,
+            "pose": POSE_TOPIC,
+            "joints": JOINT_TOPIC,
+        },
+    }
+    return d
 
 
 def write_flight(
@@ -129,66 +197,16 @@ def write_flight(
     T_sI = default_static_mount()
     imu = dataclasses.replace(imu or ImuConfig(), T_sI=T_sI)
     truth = simulate_flight(config, imu, joints, seed=seed)
-    cal0 = flight_calibration()
-    assert cal0.static_camera is not None and cal0.dynamic_camera is not None
-    cal = dataclasses.replace(
-        cal0,
-        static_camera=scale_camera(cal0.static_camera, scale),
-        dynamic_camera=scale_camera(cal0.dynamic_camera, scale),
-    )
+    cal = scaled_flight_calibration(scale)
     renderer = WorldRenderer(planes_from_world(World.around(config)), seed=seed)
     frames = render_flight(renderer, truth, cal, T_sI, noise_sigma=noise_sigma, seed=seed + 1)
     bag_path = out / ("flight.bag" if fmt == "ros1" else "flight")
-    frame_set = {int(t): k for k, t in enumerate(truth.frame_t_ns)}
-    names = [f"joint_{k + 1}" for k in range(truth.theta.shape[1])]
-    render_s = 0.0
-    n_frames = 0
-    bar = None
-    if progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=len(truth.frame_t_ns), unit="frame", desc="rendering")
-    with BagWriter(bag_path, 1 if fmt == "ros1" else 2) as bag:
-        for i, t in enumerate(truth.t_ns):
-            stamp = START_NS + int(t)
-            bag.imu(IMU_TOPIC, stamp, truth.imu.acc[i], truth.imu.gyro[i], "imu0")
-            bag.pose(POSE_TOPIC, stamp, truth.T_WI[i], "world")
-            bag.joints(JOINT_TOPIC, stamp, truth.theta[i], names)
-            if int(t) in frame_set:
-                r0 = time.process_time()
-                t_frame, img_s, img_d = next(frames)
-                render_s += time.process_time() - r0
-                assert t_frame == int(t)
-                bag.image(STATIC_TOPIC, stamp, img_s, "cam0")
-                bag.image(DYNAMIC_TOPIC, stamp, img_d, "cam1")
-                n_frames += 1
-                if bar is not None:
-                    bar.update(1)
-    if bar is not None:
-        bar.close()
+    n_frames, render_s = _write_flight_bag(bag_path, fmt, truth, frames, progress)
     cal_path = out / "calibration.yaml"
-    locked = bool(np.ptp(truth.theta, axis=0).max() == 0.0)
-    d = cal.to_dict()
-    d["imu"] = imu.to_dict()
-    d["flight"] = {
-        "seed": seed,
-        "duration_s": config.duration,
-        "distance_m": truth.distance,
-        "scale": scale,
-        "start_ns": START_NS,
-        "gimbal": "locked" if locked else "moving",
-        "joints_locked": [float(x) for x in truth.theta[0]] if locked else None,
-        "topics": {
-            "imu": IMU_TOPIC,
-            "static": STATIC_TOPIC,
-            "dynamic": DYNAMIC_TOPIC,
-            "pose": POSE_TOPIC,
-            "joints": JOINT_TOPIC,
-        },
-    }
+    d = _calibration_yaml(cal, imu, truth, config, seed, scale)
     write_text_atomic(cal_path, yaml.safe_dump(d, sort_keys=False))
     gt_path = out / "ground_truth.tum"
-    write_text_atomic(gt_path, tum_text(truth.t_ns + START_NS, truth.T_WI))
+    write_tum(gt_path, truth.t_ns + START_NS, truth.T_WI, TUM_COMMENT, quaternion_decimals=12, w_nonnegative=True)
     joints_path = out / "ground_truth_joints.csv"
     idx = truth.index_of(truth.frame_t_ns)
     write_joint_angles_csv(joints_path, truth.frame_t_ns + START_NS, truth.theta[idx])
@@ -206,9 +224,6 @@ def write_flight(
 
 def load_flight_calibration(path: str | Path) -> tuple[GimbalCalibration, ImuConfig]:
     """The calibration and IMU configuration of a ``calibration.yaml`` with an ``imu:`` section."""
-    from dcc_fg.model import load_calibration
-    from dcc_fg.data.vio import load_imu_config
-
     imu = load_imu_config(path)
     if imu is None:
         raise ValueError(f"{path}: no 'imu:' section (T_sI and IMU noise are needed for VIO)")

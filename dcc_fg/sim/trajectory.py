@@ -4,7 +4,7 @@ Pure numpy (no images). The rendered simulator (``dcc_fg.sim`` flight renderer) 
 from the same :class:`FlightTruth` and :class:`World`, so the tracks-level simulator here and the
 image pipeline share one truth.
 
-Frames and units (ARCHITECTURE.md): ``W`` world (z up, gravity along -z), ``I`` IMU/body
+Frames and units (docs/architecture.md): ``W`` world (z up, gravity along -z), ``I`` IMU/body
 (x forward, y left, z up), ``s`` static camera, ``d`` gimbal camera (x right, y down, z optical
 axis). ``T_ab`` maps points from b into a. Times in int64 nanoseconds, metres, radians.
 
@@ -43,9 +43,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
 
-from dcc_fg.model import GimbalCalibration
 from dcc_fg.data.vio import ImuConfig, ImuSamples, TrackFrame
+from dcc_fg.model import GimbalCalibration
+from dcc_fg.sim.calibration_scene import true_kinematics
 from factors import chain
 from factors.camera import CameraModel
 
@@ -103,20 +105,11 @@ class BodyState:
         return T
 
 
-def _euler_zyx(roll: FloatArray, pitch: FloatArray, yaw: FloatArray) -> FloatArray:
-    """R = Rz(yaw) Ry(pitch) Rx(roll), vectorised (N,3,3)."""
-    cr, sr, cp, sp, cy, sy = np.cos(roll), np.sin(roll), np.cos(pitch), np.sin(pitch), np.cos(yaw), np.sin(yaw)
-    R = np.empty(roll.shape + (3, 3))
-    R[..., 0, 0] = cy * cp
-    R[..., 0, 1] = cy * sp * sr - sy * cr
-    R[..., 0, 2] = cy * sp * cr + sy * sr
-    R[..., 1, 0] = sy * cp
-    R[..., 1, 1] = sy * sp * sr + cy * cr
-    R[..., 1, 2] = sy * sp * cr - cy * sr
-    R[..., 2, 0] = -sp
-    R[..., 2, 1] = cp * sr
-    R[..., 2, 2] = cp * cr
-    return R
+def rotation_zyx(roll: FloatArray, pitch: FloatArray, yaw: FloatArray) -> FloatArray:
+    """R = Rz(yaw) Ry(pitch) Rx(roll) (intrinsic z-y-x Euler angles, rad), vectorised: shape ``roll.shape + (3, 3)``."""
+    angles = np.stack(np.broadcast_arrays(yaw, pitch, roll), axis=-1)
+    R = Rotation.from_euler("ZYX", angles.reshape(-1, 3)).as_matrix()
+    return R.reshape(angles.shape[:-1] + (3, 3))
 
 
 class BodyTrajectory:
@@ -202,7 +195,7 @@ class BodyTrajectory:
             ],
             axis=-1,
         )
-        return BodyState(p_W=P, v_W=v, a_W=a, R_WI=_euler_zyx(r, p, y), omega_I=omega)
+        return BodyState(p_W=P, v_W=v, a_W=a, R_WI=rotation_zyx(r, p, y), omega_I=omega)
 
     def length(self, n: int = 20000) -> float:
         """Distance travelled over the whole flight (m)."""
@@ -428,8 +421,6 @@ def default_static_mount(
 
 def flight_calibration() -> GimbalCalibration:
     """The 2-joint gimbal of the calibration simulator (joint 1 roll centred at 90 deg, joint 2 pitch)."""
-    from dcc_fg.sim.calibration_scene import true_kinematics
-
     return true_kinematics(2)
 
 

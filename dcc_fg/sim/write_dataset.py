@@ -1,6 +1,7 @@
 """Write a complete rendered calibration data set: images (folder or bag) + configuration + truth.
 
-``dcc-fg simulate calibration --out OUT`` (:func:`write_calibration_dataset`) simulates the
+``dcc-fg simulate calibration --out OUT`` (:func:`write_calibration_dataset` with a
+:class:`CalibrationSimSpec`) simulates the
 paper's scenario (:mod:`dcc_fg.sim.calibration_scene`: geometry, cameras, joint sampling, board
 placement, perturbed initial kinematics, all seeded), renders every snapshot's two images through
 the true camera models (:mod:`dcc_fg.sim.render`) and writes::
@@ -39,10 +40,9 @@ maps points from frame b into frame a)::
 
 from __future__ import annotations
 
-import argparse
 import time
 from collections.abc import Iterator
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
@@ -50,10 +50,11 @@ import numpy as np
 import yaml
 from numpy.typing import NDArray
 
-from dcc_fg.io.bags import write_ros1_bag, write_ros2_bag
+from dcc_fg.io.bag_writer import write_ros1_bag, write_ros2_bag
 from dcc_fg.io.camchain import CamchainEntry, camchain_to_yaml
 from dcc_fg.io.folders import FramePair, write_image_folder
-from dcc_fg.model import GimbalCalibration, write_text_atomic
+from dcc_fg.io.outputs import write_text_atomic
+from dcc_fg.model import GimbalCalibration
 from dcc_fg.sim.calibration_scene import SceneConfig, SimulatedCalibration, simulate_calibration
 from dcc_fg.sim.render import RenderConfig, aprilgrid_view_flip, make_texture, render_view
 from dcc_fg.targets import TargetGeometry
@@ -147,76 +148,57 @@ def _matrix(T: FloatArray) -> list[list[float]]:
     return [[float(x) for x in row] for row in T]
 
 
-def write_calibration_dataset(
-    out: str | Path,
-    target: str = "checkerboard",
-    fmt: Format = "folder",
-    seed: int = 0,
-    n_snapshots: int = 81,
-    n_joints: int = 2,
-    render: RenderConfig | None = None,
-    storage: Literal["sqlite3", "mcap"] = "sqlite3",
-) -> RenderedCalibration:
-    """Simulate, render and write a calibration data set (layout in the module docstring).
+@dataclass(frozen=True)
+class CalibrationSimSpec:
+    """What :func:`write_calibration_dataset` simulates and how it writes it.
 
-    Args:
-        out: output folder (created; the data path inside it must not exist yet).
+    Attributes:
         target: ``checkerboard`` or ``aprilgrid`` (see :func:`default_target`).
         fmt: ``folder``, ``ros1`` or ``ros2``.
         seed: seed of the scene and of the image noise.
         n_snapshots: image pairs (the scene's jittered grid over the joint space).
         n_joints: L in {0, 1, 2, 3}.
-        render: image formation (default :class:`RenderConfig`).
+        render: image formation (noise, blur, ...).
         storage: ROS2 storage plugin.
-
-    Raises:
-        ValueError: unknown target/format, or the data path already exists.
     """
-    if fmt not in DATA_NAMES:
-        raise ValueError(f"--format must be folder, ros1 or ros2, got '{fmt}'")
-    if n_snapshots < 1:
-        raise ValueError(f"--snapshots must be >= 1, got {n_snapshots}")
-    render = render or RenderConfig()
-    out = Path(out)
-    data = out / DATA_NAMES[fmt]
-    if data.exists():
-        raise ValueError(f"{data}: already exists; choose an empty --out folder")
-    tg = default_target(target)
-    sim = simulate_calibration(seed, scene_config(tg, n_snapshots, n_joints))
-    T_st = _rendered_poses(sim)
-    rng = np.random.default_rng([seed, 1])  # image noise, independent of the scene's stream
-    out.mkdir(parents=True, exist_ok=True)
 
-    t0 = time.perf_counter()
-    frames = _frames(sim, T_st, render, rng)
-    if fmt == "folder":
+    target: str = "checkerboard"
+    fmt: Format = "folder"
+    seed: int = 0
+    n_snapshots: int = 81
+    n_joints: int = 2
+    render: RenderConfig = field(default_factory=RenderConfig)
+    storage: Literal["sqlite3", "mcap"] = "sqlite3"
+
+
+def _write_images(data: Path, frames: Iterator[FramePair], spec: CalibrationSimSpec) -> None:
+    """The image pairs as an image folder or a ROS1 / ROS2 bag (``spec.fmt``)."""
+    if spec.fmt == "folder":
         write_image_folder(data, frames)
-    elif fmt == "ros1":
+    elif spec.fmt == "ros1":
         write_ros1_bag(data, frames, STATIC_TOPIC, DYNAMIC_TOPIC)
     else:
-        write_ros2_bag(data, frames, STATIC_TOPIC, DYNAMIC_TOPIC, storage=storage)
-    render_time = time.perf_counter() - t0
+        write_ros2_bag(data, frames, STATIC_TOPIC, DYNAMIC_TOPIC, storage=spec.storage)
 
-    cams = (sim.truth.static_camera, sim.truth.dynamic_camera)
-    assert cams[0] is not None and cams[1] is not None
-    paths = {name: out / f"{name}.yaml" for name in ("camchain", "target", "gimbal", "ground_truth")}
-    entries = {"cam0": CamchainEntry(cams[0], STATIC_TOPIC), "cam1": CamchainEntry(cams[1], DYNAMIC_TOPIC)}
-    write_text_atomic(paths["camchain"], camchain_to_yaml(entries))
-    write_text_atomic(paths["target"], yaml.safe_dump(tg.to_kalibr(), sort_keys=False))
-    write_text_atomic(paths["gimbal"], yaml.safe_dump(_kinematics_dict(sim.initial), sort_keys=False))
+
+def _ground_truth_dict(
+    sim: SimulatedCalibration, T_st: FloatArray, spec: CalibrationSimSpec, data: Path
+) -> dict[str, Any]:
+    """The content of ``ground_truth.yaml`` (format in the module docstring)."""
     cfg = sim.config
-    truth: dict[str, Any] = {
+    tg = cfg.target
+    return {
         "format": "dcc-fg ground truth 1",
-        "seed": seed,
+        "seed": spec.seed,
         "scene": {
-            "joints": n_joints,
-            "snapshots": n_snapshots,
+            "joints": spec.n_joints,
+            "snapshots": spec.n_snapshots,
             "distance_range_m": list(cfg.distance_range),
             "board_tilt_max_rad": cfg.board_tilt,
             "board_roll_max_rad": cfg.board_roll,
             "margin_px": cfg.margin_px,
         },
-        "render": asdict(render),
+        "render": asdict(spec.render),
         "data": data.name,
         "target": tg.to_kalibr(),
         "kinematics": _kinematics_dict(sim.truth),
@@ -232,6 +214,46 @@ def write_calibration_dataset(
             for k, s in enumerate(sim.calibration_set.snapshots)
         ],
     }
+
+
+def write_calibration_dataset(out: str | Path, spec: CalibrationSimSpec | None = None) -> RenderedCalibration:
+    """Simulate, render and write a calibration data set (layout in the module docstring).
+
+    Args:
+        out: output folder (created; the data path inside it must not exist yet).
+        spec: what to simulate and write (default :class:`CalibrationSimSpec`: 81 checkerboard
+            image pairs of the 2-joint scene in an image folder, seed 0).
+
+    Raises:
+        ValueError: unknown target/format, or the data path already exists.
+    """
+    spec = spec or CalibrationSimSpec()
+    if spec.fmt not in DATA_NAMES:
+        raise ValueError(f"--format must be folder, ros1 or ros2, got '{spec.fmt}'")
+    if spec.n_snapshots < 1:
+        raise ValueError(f"--snapshots must be >= 1, got {spec.n_snapshots}")
+    out = Path(out)
+    data = out / DATA_NAMES[spec.fmt]
+    if data.exists():
+        raise ValueError(f"{data}: already exists; choose an empty --out folder")
+    tg = default_target(spec.target)
+    sim = simulate_calibration(spec.seed, scene_config(tg, spec.n_snapshots, spec.n_joints))
+    T_st = _rendered_poses(sim)
+    rng = np.random.default_rng([spec.seed, 1])  # image noise, independent of the scene's stream
+    out.mkdir(parents=True, exist_ok=True)
+
+    t0 = time.perf_counter()
+    _write_images(data, _frames(sim, T_st, spec.render, rng), spec)
+    render_time = time.perf_counter() - t0
+
+    cams = (sim.truth.static_camera, sim.truth.dynamic_camera)
+    assert cams[0] is not None and cams[1] is not None
+    paths = {name: out / f"{name}.yaml" for name in ("camchain", "target", "gimbal", "ground_truth")}
+    entries = {"cam0": CamchainEntry(cams[0], STATIC_TOPIC), "cam1": CamchainEntry(cams[1], DYNAMIC_TOPIC)}
+    write_text_atomic(paths["camchain"], camchain_to_yaml(entries))
+    write_text_atomic(paths["target"], yaml.safe_dump(tg.to_kalibr(), sort_keys=False))
+    write_text_atomic(paths["gimbal"], yaml.safe_dump(_kinematics_dict(sim.initial), sort_keys=False))
+    truth = _ground_truth_dict(sim, T_st, spec, data)
     write_text_atomic(paths["ground_truth"], yaml.safe_dump(truth, sort_keys=False))
     return RenderedCalibration(
         sim, data, paths["camchain"], paths["target"], paths["gimbal"], paths["ground_truth"], T_st, render_time
@@ -285,67 +307,3 @@ def load_ground_truth(path: str | Path) -> GroundTruth:
         T_st=np.array([s["T_st"] for s in snaps], dtype=float).reshape(-1, 4, 4),
         raw=d,
     )
-
-
-# ------------------------------------------------------------------ command line
-
-
-def add_simulate_calibration_parser(sub: Any) -> None:
-    """Add ``calibration`` to the ``dcc-fg simulate`` subcommands."""
-    p = sub.add_parser(
-        "calibration",
-        help="render a calibration data set of the paper's scenario (images + camchain/target/gimbal + truth)",
-        description="Simulates the paper's 2-DOF gimbal calibration scenario (two 640x480 cameras, fx ~ 460 px, "
-        "mild radial-tangential distortion, board 0.6-1.2 m away, joint angles on a jittered grid over the joint "
-        "ranges) and renders every snapshot's two images through the true camera models, distortion included, "
-        "with Gaussian blur and noise. Writes OUT/images/ (folder), OUT/images.bag (ros1) or OUT/images_bag/ "
-        "(ros2), plus OUT/camchain.yaml, OUT/target.yaml, OUT/gimbal.yaml (perturbed initial kinematics: "
-        "+N(0, 0.03 m) on lengths, +N(0, 10 deg) on angles) and OUT/ground_truth.yaml (true kinematics, true "
-        "joint angles in rad per timestamp in ns, true T_ds and T_st per snapshot, 4x4 row-major, metres).",
-    )
-    p.add_argument(
-        "--target",
-        choices=["checkerboard", "aprilgrid"],
-        default="checkerboard",
-        help="checkerboard: 10x7 inner corners, 0.06 m squares; aprilgrid: 6x6 tag36h11 tags of 0.06 m, "
-        "spacing ratio 0.3 (default checkerboard)",
-    )
-    p.add_argument(
-        "--format",
-        choices=["folder", "ros1", "ros2"],
-        default="folder",
-        help="image folder (cam0/<ns>.png, cam1/<ns>.png), ROS1 .bag or ROS2 bag folder; image topics "
-        f"{STATIC_TOPIC} and {DYNAMIC_TOPIC} (default folder)",
-    )
-    p.add_argument(
-        "--storage", choices=["sqlite3", "mcap"], default="sqlite3", help="ROS2 bag storage (default sqlite3)"
-    )
-    p.add_argument("--out", required=True, help="output folder (created; must not already hold the image data)")
-    p.add_argument("--seed", type=int, default=0, help="random seed of the scene and the image noise (default 0)")
-    p.add_argument("--snapshots", type=int, default=81, help="number of image pairs (snapshots), default 81")
-    p.add_argument("--joints", type=int, default=2, choices=[0, 1, 2, 3], help="number of gimbal joints L (default 2)")
-    p.add_argument(
-        "--noise",
-        type=float,
-        default=RenderConfig.noise_sigma,
-        help="image noise sigma, grey levels of 255 (default 2)",
-    )
-    p.add_argument(
-        "--blur", type=float, default=RenderConfig.blur_sigma_px, help="Gaussian blur sigma, pixels (default 0.6)"
-    )
-    p.set_defaults(func=run_simulate_calibration)
-
-
-def run_simulate_calibration(args: argparse.Namespace) -> int:
-    """``dcc-fg simulate calibration``."""
-    render = RenderConfig(noise_sigma=args.noise, blur_sigma_px=args.blur)
-    res = write_calibration_dataset(
-        args.out, args.target, args.format, args.seed, args.snapshots, args.joints, render, args.storage
-    )
-    print(
-        f"rendered {len(res.T_st)} image pairs in {res.render_time_s:.1f} s: {res.data}\n"
-        f"wrote {res.camchain}, {res.target}, {res.gimbal}, {res.ground_truth}\n"
-        f"calibrate with: dcc-fg calibrate {res.data} --camchain {res.camchain} --target {res.target} "
-        f"--gimbal {res.gimbal} --out {Path(args.out) / 'calibration'}"
-    )
-    return 0

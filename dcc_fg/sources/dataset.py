@@ -1,6 +1,6 @@
-"""Load any supported input into a :class:`~dcc_fg.data.CalibrationDataset`.
+"""Load any supported input into a :class:`~dcc_fg.data.CalibrationDataset` (detecting the target in images).
 
-Layouts, recognised by their content (:func:`detect_layout`):
+Layouts, recognised by their content (:func:`dcc_fg.io.layout.detect_layout`):
 
 * ``ros1_bag``: a ROS1 ``.bag`` file; ``ros2_bag``: a ROS2 bag folder (``metadata.yaml``,
   ``*.db3`` or ``*.mcap``).  Image topics are the camchain's ``rostopic`` entries (or the
@@ -19,8 +19,8 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable, Iterable, Mapping
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -28,50 +28,19 @@ from tqdm import tqdm
 
 from dcc_fg.data import CalibrationDataset, Observation, Snapshot
 from dcc_fg.detection import detect_target
-from dcc_fg.io.bags import BagImagePairs, is_bag
+from dcc_fg.io.bags import BagImagePairs
 from dcc_fg.io.camchain import CamchainEntry, load_camchain
-from dcc_fg.io.detections import is_detection_csv, read_detection_folder
-from dcc_fg.io.folders import DYNAMIC_DIR, IMAGE_SUFFIXES, STATIC_DIR, FramePair, ImageFolder
-from dcc_fg.io.pairing import DEFAULT_TOLERANCE_NS
+from dcc_fg.io.folders import DYNAMIC_DIR, STATIC_DIR, FramePair, ImageFolder
+from dcc_fg.io.layout import Layout, detect_layout
+from dcc_fg.io.pairing import DEFAULT_TOLERANCE_NS, Pairing
+from dcc_fg.sources.detections import read_detection_folder
 from dcc_fg.targets import TargetGeometry, load_target
 
 log = logging.getLogger(__name__)
 
-Layout = Literal["ros1_bag", "ros2_bag", "image_folder", "detection_folder"]
+__all__ = ["Detector", "Layout", "detect_layout", "load_dataset"]
+
 Detector = Callable[[NDArray[np.generic], TargetGeometry], Observation]
-
-
-def detect_layout(path: str | Path) -> Layout:
-    """Which input layout ``path`` holds, judged by content (not by name alone).
-
-    Raises:
-        ValueError: naming ``path`` if it does not exist or matches no layout.
-    """
-    path = Path(path)
-    if not path.exists():
-        raise ValueError(f"{path}: no such file or folder")
-    if is_bag(path):
-        return "ros1_bag" if path.is_file() else "ros2_bag"
-    if path.is_file():
-        raise ValueError(f"{path}: not a ROS1 bag (no '#ROSBAG V2.0' magic); expected a bag or a data folder")
-    static = path / STATIC_DIR
-    if not static.is_dir() or not (path / DYNAMIC_DIR).is_dir():
-        raise ValueError(
-            f"{path}: not a ROS2 bag folder (no metadata.yaml, *.db3, *.mcap) and no {STATIC_DIR}/ and "
-            f"{DYNAMIC_DIR}/ subfolders (image or detection folder layout)"
-        )
-    files = sorted(p for p in static.iterdir() if p.is_file())
-    csvs = [p for p in files if p.suffix.lower() == ".csv"]
-    images = [p for p in files if p.suffix.lower() in IMAGE_SUFFIXES]
-    if csvs and not images:
-        if not is_detection_csv(csvs[0]):
-            raise ValueError(f"{csvs[0]}: CSV without yac's detection header (#ts,tag_rows,...,tag_id,corner_idx)")
-        return "detection_folder"
-    if images and not csvs:
-        return "image_folder"
-    if images and csvs:
-        raise ValueError(f"{static}: holds both images and CSV files; cannot tell the layout")
-    raise ValueError(f"{static}: no images (*.png, *.jpg, ...) and no detection CSV files")
 
 
 def _common(snap: Snapshot) -> int:
@@ -140,6 +109,51 @@ def _keep(
     return kept
 
 
+@dataclass(frozen=True)
+class _CameraPair:
+    """The static and dynamic cameras' camchain entries and names, and how to name the camchain in errors."""
+
+    entries: tuple[CamchainEntry, CamchainEntry]
+    names: tuple[str, str]
+    source: str
+
+
+def _camera_pair(camchain: str | Path | Mapping[str, CamchainEntry], static_cam: str, dynamic_cam: str) -> _CameraPair:
+    entries = dict(load_camchain(camchain) if isinstance(camchain, str | Path) else camchain)
+    source = str(camchain) if isinstance(camchain, str | Path) else "camchain"
+    for cam in (static_cam, dynamic_cam):
+        if cam not in entries:
+            raise ValueError(f"{source}: no entry '{cam}'")
+    return _CameraPair((entries[static_cam], entries[dynamic_cam]), (static_cam, dynamic_cam), source)
+
+
+def _bag_topics(cams: _CameraPair, static_topic: str | None, dynamic_topic: str | None) -> tuple[str, str]:
+    """The image topics of the two cameras: the overrides, else the camchain's ``rostopic``."""
+    topics = []
+    for entry, cam, override in zip(cams.entries, cams.names, (static_topic, dynamic_topic), strict=True):
+        topic = override or entry.rostopic
+        if not topic:
+            raise ValueError(f"{cams.source}: {cam} has no 'rostopic' field; needed to read a bag")
+        topics.append(topic)
+    return topics[0], topics[1]
+
+
+def _input_report(
+    layout: Layout, pairing: Pairing, snapshots: list[Snapshot], kept: list[Snapshot]
+) -> dict[str, object]:
+    """Counts for a summary (see :func:`load_dataset`'s ``report``)."""
+    return {
+        "layout": layout,
+        "pairs": len(snapshots),
+        "unpaired_static": len(pairing.unpaired_static),
+        "unpaired_dynamic": len(pairing.unpaired_dynamic),
+        "detected_static": sum(1 for s in snapshots if len(s.static) > 0),
+        "detected_dynamic": sum(1 for s in snapshots if len(s.dynamic) > 0),
+        "kept": len(kept),
+        "rejected": len(snapshots) - len(kept),
+    }
+
+
 def load_dataset(
     path: str | Path,
     camchain: str | Path | Mapping[str, CamchainEntry],
@@ -193,14 +207,8 @@ def load_dataset(
     """
     path = Path(path)
     layout = detect_layout(path)
-    entries = dict(load_camchain(camchain) if isinstance(camchain, str | Path) else camchain)
-    for cam in (static_cam, dynamic_cam):
-        if cam not in entries:
-            raise ValueError(f"{camchain if isinstance(camchain, str | Path) else 'camchain'}: no entry '{cam}'")
-    pair = (entries[static_cam], entries[dynamic_cam])
+    cams = _camera_pair(camchain, static_cam, dynamic_cam)
     geometry = load_target(target) if isinstance(target, str | Path) else target
-    detector = detector or detect_target
-
     if layout == "detection_folder":
         snapshots, geometry, pairing = read_detection_folder(path, geometry, tolerance_ns)
         where = (str(path / STATIC_DIR), str(path / DYNAMIC_DIR))
@@ -212,36 +220,26 @@ def load_dataset(
             frames = ImageFolder(path, tolerance_ns)
             where = (str(path / STATIC_DIR), str(path / DYNAMIC_DIR))
         else:
-            topics = []
-            for cam, override in ((static_cam, static_topic), (dynamic_cam, dynamic_topic)):
-                topic = override or entries[cam].rostopic
-                if not topic:
-                    raise ValueError(
-                        f"{camchain if isinstance(camchain, str | Path) else 'camchain'}: {cam} has no 'rostopic' "
-                        "field; needed to read a bag"
-                    )
-                topics.append(topic)
+            topics = _bag_topics(cams, static_topic, dynamic_topic)
             frames = BagImagePairs(path, topics[0], topics[1], joint_topic, tolerance_ns, joint_names)
             where = (f"{path}: topic {topics[0]}", f"{path}: topic {topics[1]}")
         pairing = frames.pairing
         snapshots = _detect_frames(
-            frames, len(frames), geometry, pair, (static_cam, dynamic_cam), detector, progress, f"detect {path.name}"
+            frames,
+            len(frames),
+            geometry,
+            cams.entries,
+            cams.names,
+            detector or detect_target,
+            progress,
+            f"detect {path.name}",
         )
     kept = _keep(snapshots, min_common_points, where, geometry)
     if report is not None:
-        report.update(
-            layout=layout,
-            pairs=len(snapshots),
-            unpaired_static=len(pairing.unpaired_static),
-            unpaired_dynamic=len(pairing.unpaired_dynamic),
-            detected_static=sum(1 for s in snapshots if len(s.static) > 0),
-            detected_dynamic=sum(1 for s in snapshots if len(s.dynamic) > 0),
-            kept=len(kept),
-            rejected=len(snapshots) - len(kept),
-        )
+        report.update(_input_report(layout, pairing, snapshots, kept))
     return CalibrationDataset(
-        static_camera=pair[0].camera,
-        dynamic_camera=pair[1].camera,
+        static_camera=cams.entries[0].camera,
+        dynamic_camera=cams.entries[1].camera,
         target_points=geometry.points,
         snapshots=kept,
         source=str(path),

@@ -33,14 +33,12 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from dcc_fg.detection import to_gray8
-from dcc_fg.io.bags import COMPRESSED_IMAGE, IMAGE, bag_messages, decode_image, open_bag, stamp_ns
-from dcc_fg.io.pairing import DEFAULT_TOLERANCE_NS, pair_timestamps
 from dcc_fg.data.vio import ImuSamples
+from dcc_fg.detection import to_gray8
+from dcc_fg.io.bags import scan_imu_and_image_stamps, stream_image_groups
+from dcc_fg.io.pairing import DEFAULT_TOLERANCE_NS, pair_timestamps
 
 log = logging.getLogger(__name__)
-
-IMU_TYPE = "sensor_msgs/msg/Imu"
 
 
 @dataclass(frozen=True)
@@ -145,43 +143,16 @@ class VioBag:
     ) -> None:
         self.path = Path(path)
         self.imu_topic, self.static_topic, self.dynamic_topic = imu_topic, static_topic, dynamic_topic
-        topics = [imu_topic, static_topic] + ([dynamic_topic] if dynamic_topic else [])
-        t_imu: list[int] = []
-        rows: list[tuple[float, ...]] = []
-        stamps: dict[str, list[int]] = {static_topic: [], **({dynamic_topic: []} if dynamic_topic else {})}
-        with open_bag(self.path) as reader:
-            conns = self._connections(reader, topics)
-            for conn, t, msg in bag_messages(self.path, reader, conns):
-                if conn.topic == imu_topic:
-                    t_imu.append(stamp_ns(msg, t))
-                    a, w = msg.linear_acceleration, msg.angular_velocity
-                    rows.append((a.x, a.y, a.z, w.x, w.y, w.z))
-                else:
-                    stamps[conn.topic].append(stamp_ns(msg, t))
+        image_topics = [static_topic] + ([dynamic_topic] if dynamic_topic else [])
+        scan = scan_imu_and_image_stamps(self.path, imu_topic, image_topics)
         where = f"{self.path}: topic {imu_topic}"
-        data = np.array(rows, dtype=float).reshape(-1, 6)
         self.imu, self.imu_check = validate_imu(
-            np.array(t_imu, dtype=np.int64), data[:, :3], data[:, 3:], where, max_imu_gap_s, max_bad_imu_fraction
+            scan.imu_t_ns, scan.imu_acc, scan.imu_gyro, where, max_imu_gap_s, max_bad_imu_fraction
         )
         self.imu_gaps = self.imu_check.gaps
-        self._stamps = stamps
-        s = stamps[static_topic]
-        if not s:
-            raise ValueError(f"{self.path}: topic {static_topic} has no messages")
-        if dynamic_topic:
-            if not stamps[dynamic_topic]:
-                raise ValueError(f"{self.path}: topic {dynamic_topic} has no messages")
-            pairing = pair_timestamps(s, stamps[dynamic_topic], tolerance_ns)
-            if not pairing.pairs:
-                raise ValueError(
-                    f"{self.path}: no image of {static_topic} has a partner on {dynamic_topic} "
-                    f"within {tolerance_ns / 1e6:g} ms"
-                )
-            if pairing.unpaired_static or pairing.unpaired_dynamic:
-                log.warning("%s: %s", self.path, pairing.summary(static_topic, dynamic_topic))
-            self._pairs = pairing.pairs
-        else:
-            self._pairs = [(i, -1) for i in range(len(s))]
+        self._stamps = scan.image_stamps
+        self._pairs = self._pair_images(tolerance_ns)
+        s = self._stamps[static_topic]
         self.frame_times = np.array(sorted(s[i] for i, _ in self._pairs), dtype=np.int64)
         self.image_gaps: list[tuple[int, int]] = []
         dt = np.diff(self.frame_times)
@@ -192,19 +163,24 @@ class VioBag:
         self._gap_starts = self._frames_after_gaps()
 
     # -- first-pass helpers ----------------------------------------------------------------------
-    def _connections(self, reader, topics: list[str]):  # type: ignore[no-untyped-def]
-        available = sorted({f"{c.topic} ({c.msgtype})" for c in reader.connections})
-        conns = []
-        for topic in topics:
-            found = [c for c in reader.connections if c.topic == topic]
-            if not found:
-                raise ValueError(f"{self.path}: topic {topic} not found; the bag has: {', '.join(available)}")
-            want = (IMU_TYPE,) if topic == self.imu_topic else (IMAGE, COMPRESSED_IMAGE)
-            for c in found:
-                if c.msgtype not in want:
-                    raise ValueError(f"{self.path}: topic {topic} has type {c.msgtype}, expected {' or '.join(want)}")
-            conns += found
-        return conns
+    def _pair_images(self, tolerance_ns: int) -> list[tuple[int, int]]:
+        """``(static index, dynamic index)`` per frame (dynamic -1 in a static-only bag)."""
+        s_topic, d_topic = self.static_topic, self.dynamic_topic
+        s = self._stamps[s_topic]
+        if not s:
+            raise ValueError(f"{self.path}: topic {s_topic} has no messages")
+        if not d_topic:
+            return [(i, -1) for i in range(len(s))]
+        if not self._stamps[d_topic]:
+            raise ValueError(f"{self.path}: topic {d_topic} has no messages")
+        pairing = pair_timestamps(s, self._stamps[d_topic], tolerance_ns)
+        if not pairing.pairs:
+            raise ValueError(
+                f"{self.path}: no image of {s_topic} has a partner on {d_topic} within {tolerance_ns / 1e6:g} ms"
+            )
+        if pairing.unpaired_static or pairing.unpaired_dynamic:
+            log.warning("%s: %s", self.path, pairing.summary(s_topic, d_topic))
+        return pairing.pairs
 
     def _frames_after_gaps(self) -> set[int]:
         """Frame stamps that come first after an image gap or after an IMU gap."""
@@ -243,37 +219,21 @@ class VioBag:
         yield from self._pending_frames()
 
     def _pending_frames(self) -> Iterator[VioFrame]:
+        """Frames in static-stamp order, even where the bag's record order differs."""
         s_topic, d_topic = self.static_topic, self.dynamic_topic
-        pair_of = {s_topic: {i: n for n, (i, _) in enumerate(self._pairs)}}
-        if d_topic:
-            pair_of[d_topic] = {j: n for n, (_, j) in enumerate(self._pairs)}
-        count = dict.fromkeys(pair_of, 0)
-        pending: dict[int, dict[str, tuple[NDArray[np.uint8], int]]] = {}
-        ready: dict[int, VioFrame] = {}
-        next_out = 0
+        topics = [s_topic] + ([d_topic] if d_topic else [])
+        groups = self._pairs if d_topic else [(i,) for i, _ in self._pairs]
         order = sorted(range(len(self._pairs)), key=lambda n: self._stamps[s_topic][self._pairs[n][0]])
         rank = {n: r for r, n in enumerate(order)}
-        need = 2 if d_topic else 1
-        with open_bag(self.path) as reader:
-            conns = [c for c in reader.connections if c.topic in pair_of]
-            for conn, t, msg in bag_messages(self.path, reader, conns):
-                k = count[conn.topic]
-                count[conn.topic] += 1
-                n = pair_of[conn.topic].get(k)
-                if n is None:
-                    continue
-                ts = stamp_ns(msg, t)
-                where = f"{self.path}: topic {conn.topic} at {ts} ns"
-                pending.setdefault(n, {})[conn.topic] = (to_gray8(decode_image(msg, conn.msgtype, where)), ts)
-                if len(pending[n]) < need:
-                    continue
-                got = pending.pop(n)
-                s_img, s_ts = got[s_topic]
-                d_img, d_ts = got[d_topic] if d_topic else (None, 0)
-                ready[rank[n]] = VioFrame(s_ts, s_img, d_img, d_ts, s_ts in self._gap_starts)
-                while next_out in ready:  # emit in stamp order even if the bag's record order differs
-                    yield ready.pop(next_out)
-                    next_out += 1
+        ready: dict[int, VioFrame] = {}
+        next_out = 0
+        for n, images in stream_image_groups(self.path, topics, groups, to_gray8):
+            s_img = images[0]
+            d_img, d_ts = (images[1].image, images[1].stamp_ns) if d_topic else (None, 0)
+            ready[rank[n]] = VioFrame(s_img.stamp_ns, s_img.image, d_img, d_ts, s_img.stamp_ns in self._gap_starts)
+            while next_out in ready:
+                yield ready.pop(next_out)
+                next_out += 1
         while next_out in ready:
             yield ready.pop(next_out)
             next_out += 1
