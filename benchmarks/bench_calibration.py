@@ -12,7 +12,7 @@ What is measured
 
 2. The nonlinear least-squares solve alone, apples to apples. The initial values are reproduced here
    with the same public helpers ``calibrate()`` calls (``snapshot_measurements``, ``pnp_pose``,
-   ``fit_joint_angles``, ``gauge_fixed_kin``, ``gauge_fixed_joint_offsets``,
+   ``joint_angles_from_T_ds``, ``gauge_fixed_kin``, ``gauge_fixed_joint_offsets``,
    ``robust_pose_level_init``), so both solvers start from exactly the values ``calibrate()`` hands to
    GTSAM (checked: the initial costs agree with ``CalibrationResult.initial_error``). Unknowns: the free
    kinematic entries, the L joint angles per snapshot and the target pose per snapshot; the gauge-fixed
@@ -56,26 +56,22 @@ from typing import Any
 import gtsam
 import numpy as np
 import scipy.sparse
+from gtsam.symbol_shorthand import J, X
 from numpy.typing import NDArray
 from scipy.optimize import OptimizeResult, least_squares
 from scipy.spatial.transform import Rotation
 
-from dcc_fg.calibrate import (
+from dcc_fg.calibrate import CalibrationOptions, calibrate
+from dcc_fg.calibration_graph import (
     GAUGE_SIGMA,
     KIN_KEY,
-    CalibrationOptions,
-    calibrate,
-    fit_joint_angles,
     gauge_fixed_joint_offsets,
     gauge_fixed_kin,
     lm_params,
-    pose_key,
-    robust_pose_level_init,
     snapshot_measurements,
-    theta_key,
 )
 from dcc_fg.data import CalibrationDataset
-from dcc_fg.init import pnp_pose
+from dcc_fg.init import joint_angles_from_T_ds, pnp_pose, robust_pose_level_init
 from dcc_fg.model import GimbalCalibration
 from dcc_fg.sim.calibration_scene import SceneConfig, simulate_calibration
 from factors import chain
@@ -158,7 +154,7 @@ def build_problem(data: CalibrationDataset, initial: GimbalCalibration) -> Probl
         if s.joints is not None and L > 0:
             thetas0[i] = np.asarray(s.joints, float)
         elif L > 0:
-            thetas0[i] = fit_joint_angles(initial, T_dt0[i] @ chain.inv_se3(T_st0[i]), None)
+            thetas0[i] = joint_angles_from_T_ds(initial, T_dt0[i] @ chain.inv_se3(T_st0[i]), None)
     fixed = gauge_fixed_kin(L, MODE)
     offsets = gauge_fixed_joint_offsets(L, MODE)
     kin_start = initial.kin.copy()
@@ -271,11 +267,11 @@ def solve_gtsam(p: Problem, max_iterations: int = 500) -> SolveReport:
     values = gtsam.Values()
     values.insert(KIN_KEY, p.kin_free0)
     for i, m in enumerate(p.meas):
-        values.insert(theta_key(i), p.thetas0[i])
-        values.insert(pose_key(i), gtsam.Pose3(p.T_st0[i]))
-        graph.add(bundle_factor(p.layout, m, p.cams, PIXEL_SIGMA, pose_key(i), KIN_KEY, theta_key(i)))
+        values.insert(J(i), p.thetas0[i])
+        values.insert(X(i), gtsam.Pose3(p.T_st0[i]))
+        graph.add(bundle_factor(p.layout, m, p.cams, PIXEL_SIGMA, X(i), KIN_KEY, J(i)))
     for j, value in zip(p.offsets, p.offset_values, strict=True):
-        graph.add(mean_prior_factor([theta_key(i) for i in range(K)], j, value, GAUGE_SIGMA))
+        graph.add(mean_prior_factor([J(i) for i in range(K)], j, value, GAUGE_SIGMA))
     params = lm_params(max_iterations)
     initial_cost = graph.error(values)
     optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
@@ -286,8 +282,8 @@ def solve_gtsam(p: Problem, max_iterations: int = 500) -> SolveReport:
     elapsed = time.perf_counter() - t1
 
     kin_free = result.atVector(KIN_KEY)
-    thetas = np.array([result.atVector(theta_key(i)) for i in range(K)])
-    T_st = np.array([result.atPose3(pose_key(i)).matrix() for i in range(K)])
+    thetas = np.array([result.atVector(J(i)) for i in range(K)])
+    T_st = np.array([result.atPose3(X(i)).matrix() for i in range(K)])
     iterations = int(optimizer.iterations())
     return SolveReport(
         name="dcc-fg (GTSAM LM)",

@@ -37,16 +37,21 @@ solve above, so only these 6 parameters are searched, on the translation misfit 
 then the pose-level fit (:func:`dcc_fg.init.pose_level_refine`) from the best minima.
 
 Everything is refined afterwards: the pose-level LM fit, then the corner-level graph.
+Frames and conventions: docs/architecture.md.
 """
 
 from __future__ import annotations
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
 
 from dcc_fg.data import CalibrationDataset
-from dcc_fg.init import pnp_pose, pose_level_refine
+from dcc_fg.init import chordal_mean_rotation, mean_pose, pnp_pose, pose_level_refine
+from dcc_fg.joint_motion import check_joint_motion
 from dcc_fg.model import GimbalCalibration
+from dcc_fg.util.errors import stage
 from factors import chain
 
 FloatArray = NDArray[np.float64]
@@ -72,25 +77,9 @@ def pnp_T_ds(data: CalibrationDataset) -> FloatArray:
 # ------------------------------------------------------------------ rotation helpers
 
 
-def _log_so3(R: FloatArray) -> FloatArray:
-    """Axis-angle vector of a rotation matrix (rad)."""
-    c = np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)
-    angle = np.arccos(c)
-    w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
-    if angle < 1e-9:
-        return 0.5 * w
-    if np.pi - angle < 1e-6:  # near pi: axis from the symmetric part
-        M = (R + np.eye(3)) / 2.0
-        axis = M[:, int(np.argmax(np.diag(M)))]
-        return angle * axis / np.linalg.norm(axis)
-    return angle * w / (2.0 * np.sin(angle))
-
-
-def _project_so3(M: FloatArray) -> FloatArray:
-    """Closest rotation matrix (Frobenius norm) to a 3x3 matrix."""
-    U, _, Vt = np.linalg.svd(M)
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
-    return U @ D @ Vt
+def rotation_vectors(R: FloatArray) -> FloatArray:
+    """Axis-angle vectors (K, 3), rad, of rotation matrices (K, 3, 3)."""
+    return Rotation.from_matrix(R).as_rotvec()
 
 
 def _z_angle(R: FloatArray) -> float:
@@ -138,7 +127,7 @@ def _prefix_rotations(thetas: FloatArray, alphas: FloatArray) -> FloatArray:
 
 def _rotation_one_joint(R_sd: FloatArray) -> tuple[FloatArray, FloatArray]:
     """Joint axis w1 (in s) and relative angles theta_i - theta_0 of an L = 1 mechanism."""
-    logs = np.array([_log_so3(R @ R_sd[0].T) for R in R_sd])
+    logs = rotation_vectors(R_sd @ R_sd[0].T)
     _, _, Vt = np.linalg.svd(logs, full_matrices=False)
     w1 = Vt[0]
     return w1, logs @ w1
@@ -165,8 +154,8 @@ def principal_rotation_directions(R_sd: FloatArray) -> tuple[FloatArray, FloatAr
     frame), centred on their mean. Returns (RMS spread (3,) in rad, largest first; the directions
     as the columns of a 3x3 matrix).
     """
-    R_mean = _project_so3(R_sd.sum(axis=0))
-    r = np.array([_log_so3(R @ R_mean.T) for R in R_sd])
+    R_mean = chordal_mean_rotation(R_sd)
+    r = rotation_vectors(R_sd @ R_mean.T)
     r -= r.mean(axis=0)
     _, sv, Vt = np.linalg.svd(r, full_matrices=False)
     return sv / np.sqrt(len(r)), Vt.T
@@ -266,7 +255,7 @@ def _end_mount(W: FloatArray, rel_last: FloatArray) -> tuple[FloatArray, FloatAr
     """Given ``W_i = Rz(theta_L,i) R_ed`` up to a common offset of theta_L, choose the offset so that
     tau_d's Euler pitch is 0 and return (theta_L (K,), R_ed)."""
     th = _wrap(rel_last - np.angle(np.mean(np.exp(1j * rel_last))))
-    R_ed = _project_so3(sum(chain.rot_z(-t) @ Wi for t, Wi in zip(th, W, strict=True)))
+    R_ed = chordal_mean_rotation(np.array([chain.rot_z(-t) @ Wi for t, Wi in zip(th, W, strict=True)]))
     R_de = R_ed.T
     phi = float(np.arctan2(-R_de[2, 0], R_de[2, 1]))  # R_de Rz(phi) has (2, 0) entry 0
     return th + phi, chain.rot_z(-phi) @ R_ed
@@ -308,7 +297,7 @@ def closed_form_low_dof(
     return _assemble(R_sb, t_sb, R_ed, t_ed, alphas, da), thetas
 
 
-def _rotation_ik(Q: FloatArray, alphas: FloatArray, th2_sign: float = 1.0) -> tuple[FloatArray, FloatArray]:
+def rotation_ik_three_joints(Q: FloatArray, alphas: FloatArray, th2_sign: float = 1.0) -> tuple[FloatArray, FloatArray]:
     """Joint angles with ``Rz(t1) Rx(a1) Rz(t2) Rx(a2) Rz(t3) = Q_i`` (three joints, closed form).
 
     Args:
@@ -365,7 +354,7 @@ class _ThreeJointProjection:
         """(R_bs, R_ed, angles (K, 3), whitened residual, translation solution (t_sb, da, t_ed) stacked)."""
         R_bs, R_ed = base_rotation(w1), base_rotation(b3)  # R_ed maps b3 (in d) onto the e z axis
         al = np.array([alphas[0], alphas[1], 0.0])
-        thetas, misfit = _rotation_ik(R_bs @ self.R_sd @ R_ed.T, al)
+        thetas, misfit = rotation_ik_three_joints(R_bs @ self.R_sd @ R_ed.T, al)
         t_sb, da, t_ed, r_t = _translation_fit(self.T_sd, R_bs.T, thetas, al)
         r = np.concatenate([r_t / 1e-3, misfit.ravel() / 1e-3])
         return R_bs, R_ed, thetas, r, np.concatenate([t_sb, da.ravel(), t_ed])
@@ -389,8 +378,6 @@ def multistart_three_joints(
     """L = 3: the 6-parameter axis search of :class:`_ThreeJointProjection` (Levenberg-Marquardt)
     from ``n_starts`` random axes and twists, then the full pose-level fit from its ``N_L3_KEEP``
     best minima; the lowest fit RMS wins. Returns (kin, joint angles (K, 3), fit RMS)."""
-    from scipy.optimize import least_squares
-
     proj = _ThreeJointProjection(T_ds)
     rng = np.random.default_rng(seed)
     minima: list[tuple[float, FloatArray, FloatArray, FloatArray]] = []
@@ -471,27 +458,25 @@ def auto_initialize(
         raise ValueError(f"automatic initialization supports 0 to 3 joints, got --joints {n_joints}")
     if not data.snapshots:
         raise ValueError(f"{data.source}: the snapshot list is empty")
-    T = pnp_T_ds(data) if T_ds is None else T_ds
+    with stage("PnP", hint="check the camera intrinsics (--camchain) and the target description (--target)"):
+        T = pnp_T_ds(data) if T_ds is None else T_ds
     K = T.shape[0]
     if n_joints > 0:
-        from dcc_fg.calibrate import check_joint_motion  # calibrate never imports auto_init
-
-        check_joint_motion(data, T, n_joints)  # a joint that never moves: say so before fitting noise
+        with stage("joint-motion check"):
+            check_joint_motion(data, T, n_joints)  # a joint that never moves: say so before fitting noise
     cams = {"static_camera": data.static_camera, "dynamic_camera": data.dynamic_camera}
     if n_joints == 0:
-        R = _project_so3(T[:, :3, :3].sum(axis=0))
-        T0 = np.eye(4)
-        T0[:3, :3], T0[:3, 3] = R, T[:, :3, 3].mean(axis=0)
-        kin = np.concatenate([np.zeros(6), chain.tau_from_se3(T0)])
+        kin = np.concatenate([np.zeros(6), chain.tau_from_se3(mean_pose(T))])
         return GimbalCalibration(kin, 0, **cams), np.zeros((K, 0)), float("nan")
     free = np.ones(chain.n_kin(n_joints), dtype=bool)
     last = 12 + 3 * (n_joints - 1)
     free[[2, 5, last, last + 1, last + 2]] = False
-    if n_joints == 1:
-        kin0, th0 = closed_form_low_dof(T, 1)
-        kin, th, rms = pose_level_refine(kin0, 1, T, th0, free, [0], True)
-    elif n_joints == 2:
-        kin, th, rms = _two_joint_candidates(T, free)
-    else:
-        kin, th, rms = multistart_three_joints(T, free)
+    with stage("automatic initialization", hint="give hand-measured initial kinematics (--gimbal G.yaml)"):
+        if n_joints == 1:
+            kin0, th0 = closed_form_low_dof(T, 1)
+            kin, th, rms = pose_level_refine(kin0, 1, T, th0, free, [0], True)
+        elif n_joints == 2:
+            kin, th, rms = _two_joint_candidates(T, free)
+        else:
+            kin, th, rms = multistart_three_joints(T, free)
     return GimbalCalibration(kin, n_joints, **cams), th, rms

@@ -1,6 +1,9 @@
-"""Does the dynamic camera's motion show every joint moving? A rotation-only test on PnP poses.
+"""Does the dynamic camera's motion show every joint moving? Rotation-only tests on PnP poses.
 
-Used by :func:`dcc_fg.calibrate.check_joint_motion` for L >= 3. Frames as in :mod:`factors.chain`:
+:func:`check_joint_motion` runs before a calibration or an automatic initialization: the relative
+rotations must spread along as many directions as the joints need (:func:`rotation_spread`), and for
+L >= 3 they must not be those of a two-joint chain (:func:`two_joint_report`). Frames as in
+:mod:`factors.chain` (docs/architecture.md):
 ``s`` static camera, ``d`` dynamic camera, ``t`` target; ``R_sd,i`` is the rotation of snapshot
 i's ``T_sd = T_st inv(T_dt)`` from PnP in both cameras.
 
@@ -18,16 +21,19 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import gtsam
 import numpy as np
 from numpy.typing import NDArray
 
 from dcc_fg.data import CalibrationDataset
-from dcc_fg.init import pnp_pose
+from dcc_fg.init import mean_pose, pnp_pose
 from dcc_fg.model import GimbalCalibration
 from factors import chain
 from factors.camera import CameraModel
 
 FloatArray = NDArray[np.float64]
+MIN_ROTATION_SPREAD_RAD = np.deg2rad(0.5)  # RMS rotation spread below which a direction counts as flat
+FLAT_JOINT_SPAN_RAD = np.deg2rad(2.0)  # initial angles spanning less than this: the joint never moves
 MAX_COS_TWIST = np.cos(np.deg2rad(20.0))  # planes of nearly parallel axis pairs are not searched (see _plane_chi2)
 GRID_POINTS = 2000  # hemisphere grid of the axis u
 N_REFINED = 4  # well-separated grid minima refined locally
@@ -35,6 +41,14 @@ N_REFINED = 4  # well-separated grid minima refined locally
 # locked-joint L = 3 data sets); moving L = 3 mechanisms at 2.0 (one random geometry whose third
 # rotation is 0.16 deg RMS), 7.7, 8.8 and above (pinned L = 3: 346 and above).
 MAX_CHI2_PER_DOF = 3.0
+
+
+def never_moves(joint: int, span: float) -> str:
+    """The message for a joint (0-based) whose initial angles span only ``span`` rad."""
+    return (
+        f"joint {joint + 1} never moves during the recording (its angles span only {span:.2e} rad): "
+        f"joint {joint + 1} is unobservable"
+    )
 
 
 @dataclass
@@ -221,13 +235,9 @@ def two_joint_report(
     named = ""
     if thetas0 is not None:
         span = np.ptp(np.asarray(thetas0, float), axis=0)
-        flat = [j for j in range(L) if span[j] < np.deg2rad(2.0)]
+        flat = [j for j in range(L) if span[j] < FLAT_JOINT_SPAN_RAD]
         if len(flat) == L - 2:
-            named = "; ".join(
-                f"joint {j + 1} never moves during the recording (its angles span only {span[j]:.2e} rad): "
-                f"joint {j + 1} is unobservable"
-                for j in flat
-            )
+            named = "; ".join(never_moves(j, span[j]) for j in flat)
         elif L == 3 and initial is not None:
             found = locked_joint_of_three(fit, T_ds_pnp, initial.kin, thetas0)
             if found is not None:
@@ -244,3 +254,113 @@ def two_joint_report(
         "; a joint never moves, or moves too little to show in the images (images alone do not tell which joint: "
         "give joint readings, e.g. joints.csv or a JointState topic, or a gimbal.yaml)"
     )
+
+
+# ------------------------------------------------------------------ the check before a calibration
+
+
+def rotation_spread(T_ds: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Principal directions of the K relative rotations ``R_ds,i``: the rotation vectors
+    ``Log(R_mean^T R_ds,i)`` about the chordal mean (right perturbations, static-camera frame).
+
+    Returns:
+        (RMS spread (3,) in rad, largest first; the directions as the columns of a 3x3 matrix).
+    """
+    R_mean = mean_pose(T_ds)[:3, :3]
+    r = np.array([gtsam.Rot3.Logmap(gtsam.Rot3(R_mean.T @ T[:3, :3])) for T in T_ds])
+    r -= r.mean(axis=0)
+    _, sv, Vt = np.linalg.svd(r, full_matrices=False)
+    return sv / np.sqrt(len(r)), Vt.T
+
+
+def check_joint_motion(
+    data: CalibrationDataset,
+    T_ds_pnp: FloatArray,
+    L: int,
+    thetas0: FloatArray | None = None,
+    initial: GimbalCalibration | None = None,
+) -> None:
+    """Refuse (ValueError) data in which the dynamic camera does not rotate about enough axes.
+
+    Each moving joint rotates the dynamic camera about its own axis, so L joints with non-parallel
+    axes give relative rotations (``T_ds`` from PnP in both cameras) that spread along min(L, 3)
+    directions. A joint that never moves leaves a direction flat (RMS spread below
+    ``MIN_ROTATION_SPREAD_RAD``; PnP noise is ~0.1-0.3 deg here), and the DH parameters next to it
+    become unobservable. In encoderless mode the joint angles are free per snapshot, so the
+    degeneracy is only approximate at a fitted start and the information-matrix check can miss it;
+    the solve then "succeeds" with meaningless joint angles.
+
+    This sees every locked joint for L <= 2. For L >= 3 two moving joints already spread the
+    rotations over 3 directions (the second joint's axis turns with the first), so the rotations are
+    also tested for the structure of a two-joint chain (:func:`two_axis_fit`): an axis fixed in s
+    followed by one fixed in d. When that fits within the PnP noise (chi-square per degree of
+    freedom below ``MAX_CHI2_PER_DOF``) and leaves less than ``MIN_ROTATION_SPREAD_RAD`` RMS
+    unexplained, at most two joints move (see :func:`two_joint_report`; a mechanism whose third joint
+    moves so little that its rotation is lost in the PnP noise is refused too).
+
+    Which joint is flat is not visible in the images alone (one joint rotating about a fixed axis
+    looks the same whichever it is); it is named from ``thetas0`` (initial angles spanning < 2 deg)
+    or else from ``initial``'s joint axes (for L <= 2 the axis the observed rotations do not use; for
+    L = 3 the pair of axes the two-joint structure matches, :func:`locked_joint_of_three`).
+    """
+    spread, V = rotation_spread(T_ds_pnp)
+    need = min(L, 3)
+    n_dirs = int(np.sum(spread > MIN_ROTATION_SPREAD_RAD))
+    if n_dirs >= need:
+        if L >= 3:
+            report = two_joint_report(data, T_ds_pnp, L, MIN_ROTATION_SPREAD_RAD, thetas0, initial)
+            if report is not None:
+                raise ValueError(report)
+        return
+    n_flat = need - n_dirs
+    msg = (
+        f"{data.source}: the dynamic camera rotates about only {n_dirs} independent axis direction(s) relative "
+        f"to the static camera (RMS spread {', '.join(f'{np.rad2deg(x):.2f}' for x in spread)} deg along the "
+        f"principal directions; below {np.rad2deg(MIN_ROTATION_SPREAD_RAD):.1f} deg counts as none), but {L} "
+        f"joint(s) need {need}"
+    )
+    named: list[str] = []
+    if thetas0 is not None:
+        named = flat_joints_by_angles(np.asarray(thetas0, float), n_flat)
+    if not named and initial is not None and thetas0 is not None:
+        named = flat_joints_by_axes(initial, np.asarray(thetas0, float), V[:, :n_dirs], n_flat)
+    if named:
+        msg += "; " + "; ".join(named)
+    else:
+        msg += (
+            "; a joint never moves or the joints move together (images alone do not tell which joint: give "
+            "joint readings, e.g. joints.csv or a JointState topic, or a gimbal.yaml)"
+        )
+    raise ValueError(msg)
+
+
+def flat_joints_by_angles(thetas0: FloatArray, n_flat: int) -> list[str]:
+    """Messages naming the ``n_flat`` joints whose initial angles (K, L) span least, when each spans
+    under ``FLAT_JOINT_SPAN_RAD``; else none."""
+    span = np.ptp(thetas0, axis=0)
+    flat = [j for j in np.argsort(span, kind="stable")[:n_flat] if span[j] < FLAT_JOINT_SPAN_RAD]
+    if len(flat) != n_flat:
+        return []
+    return [never_moves(j, span[j]) for j in flat]
+
+
+def flat_joints_by_axes(initial: GimbalCalibration, thetas0: FloatArray, M: FloatArray, n_flat: int) -> list[str]:
+    """Messages naming the ``n_flat`` joints whose axes (by ``initial``'s kinematics at ``thetas0``, in
+    the static-camera frame) lie least inside the observed rotation directions ``M`` (3, n_dirs),
+    when they stand apart from the others (mean direction cosine gap > 0.3); else none."""
+    L = initial.n_joints
+    use = np.zeros(L)
+    for th in thetas0:
+        Jt = chain.d_T_ds_tangent(initial.kin, th, L)[1][:3]
+        axes = Jt / np.linalg.norm(Jt, axis=0)
+        use += np.linalg.norm(M.T @ axes, axis=0) / len(thetas0)
+    order = np.argsort(use, kind="stable")
+    gap = use[order[n_flat]] - use[order[n_flat - 1]] if n_flat < L else 1.0
+    if gap <= 0.3:
+        return []
+    return [
+        f"joint {j + 1} never moves during the recording (by the initial kinematics, its axis is "
+        f"{np.rad2deg(np.arccos(min(use[j], 1.0))):.0f} deg away from every observed rotation): "
+        f"joint {j + 1} is unobservable"
+        for j in order[:n_flat]
+    ]

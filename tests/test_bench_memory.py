@@ -30,6 +30,10 @@ from types import ModuleType
 
 import numpy as np
 
+from dcc_fg.sim.calibration_scene import simulate_calibration
+from dcc_fg.sim.write_dataset import default_target, load_ground_truth, scene_config
+from dcc_fg.studies.calibration_accuracy import cramer_rao_bound
+
 BENCH = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_memory.py"
 
 
@@ -61,10 +65,6 @@ def test_bench_memory_runs_and_streams(tmp_path: Path) -> None:
 
 
 def test_bench_memory_gimbal_auto_init(tmp_path: Path) -> None:
-    from dcc_fg.sim.calibration_scene import simulate_calibration
-    from dcc_fg.sim.write_dataset import default_target, load_ground_truth, scene_config
-    from dcc_fg.studies.calibration_accuracy import cramer_rao_bound
-
     bench = _load_bench()
     n, seed = 30, 0
     res = bench.run(frames_n=n, fmt="ros2", workdir=tmp_path / "gimbal", verbose=False, joints=2, seed=seed)

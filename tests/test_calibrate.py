@@ -7,18 +7,17 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+import dcc_fg.calibrate as calibrate_module
 from dcc_fg import load_calibration
-from dcc_fg.calibrate import (
-    CalibrationOptions,
-    calibrate,
-    gauge_fixed_joint_offsets,
-    gauge_fixed_kin,
-    information_schur,
-    null_space,
-)
+from dcc_fg.auto_init import auto_initialize
+from dcc_fg.calibrate import CalibrationOptions, calibrate, initial_problem
+from dcc_fg.calibration_graph import build_graph, gauge_fixed_joint_offsets, gauge_fixed_kin
+from dcc_fg.covariance import graph_marginals, information_schur, null_space
 from dcc_fg.data import Observation
-from dcc_fg.sim.calibration_scene import SceneConfig, simulate_calibration
+from dcc_fg.sim.calibration_scene import SceneConfig, simulate_calibration, simulate_snapshots
 from dcc_fg.studies.calibration_accuracy import cramer_rao_bound, evaluate_against_truth
+from dcc_fg.targets import TargetGeometry
+from dcc_fg.util.errors import EstimatorError
 
 PAPER_JOINT_ERR = (5.89e-3, 2.38e-3)  # Table II, calibration set
 
@@ -39,7 +38,7 @@ def test_demo_gauge_and_observability(demo_result) -> None:
     cal = demo_result.calibration
     observable = {n for n, o in zip(cal.names, cal.observable, strict=True) if o}
     # joint 1 axis tilt w.r.t. the static camera and the first link are observable; the base
-    # z rotation/height, the last link and the end-effector mount are not (ARCHITECTURE.md)
+    # z rotation/height, the last link and the end-effector mount are not (docs/architecture.md)
     assert {"tau_s.rx", "tau_s.ry", "dh1.a", "dh1.alpha"} <= observable
     assert not observable & {"tau_s.rz", "tau_s.tz", "dh1.d", "dh2.d", "dh2.a", "dh2.alpha"}
     assert np.all(np.isfinite(cal.kin_std[cal.observable]))
@@ -205,9 +204,6 @@ def test_bad_input_too_few_snapshots(demo_sim) -> None:
 def test_bad_input_joint_never_moves(target: str, locked_joint: int, guesses: bool) -> None:
     """A mechanism with one joint locked: the error names that joint, from the initial angles
     (guesses that span nothing) or, without guesses, from the initial kinematics' joint axes."""
-    from dcc_fg.sim.calibration_scene import simulate_snapshots
-    from dcc_fg.targets import TargetGeometry
-
     extra = {"target": TargetGeometry.aprilgrid(6, 5, 0.06, 0.3)} if target == "aprilgrid" else {}
     sim = simulate_calibration(2, SceneConfig(n_calibration=20, n_validation=1, **extra))
     locked = sim.joints_calibration.copy()
@@ -221,9 +217,6 @@ def test_bad_input_joint_never_moves(target: str, locked_joint: int, guesses: bo
 def test_joint_never_moves_without_kinematics_says_it_cannot_tell_which() -> None:
     """With no gimbal.yaml (automatic initialization) the images alone do not tell which joint is
     locked, and the error says so instead of fitting a mechanism to noise."""
-    from dcc_fg.auto_init import auto_initialize
-    from dcc_fg.sim.calibration_scene import simulate_snapshots
-
     sim = simulate_calibration(2, SceneConfig(n_calibration=20, n_validation=1))
     locked = np.column_stack([sim.joints_calibration[:, 0], np.zeros(20)])
     data, _, _ = simulate_snapshots(sim.truth, locked, sim.config, np.random.default_rng(0), "locked joint")
@@ -251,3 +244,37 @@ def test_gauge_on_reference_snapshots_is_the_same_solution(monkeypatch: pytest.M
     np.testing.assert_allclose(d[:, 0], 0.0, atol=1e-8)  # theta_1's offset is held by tau_s.rz
     np.testing.assert_allclose(d[:, 1], d[0, 1], atol=1e-8)  # theta_L: one constant offset
     assert subset.final_error == pytest.approx(every.final_error, rel=1e-9)
+
+
+def test_ill_posed_graph_fails_in_a_named_stage() -> None:
+    """Without the gauge (no entry held, no mean prior) the graph's information matrix is singular:
+    gtsam's IndeterminantLinearSystemException becomes an EstimatorError naming the stage and a hint;
+    calibrate() itself reports such covariances as unavailable."""
+    sim = simulate_calibration(0, SceneConfig(n_calibration=12, n_validation=1))
+    problem = initial_problem(sim.calibration_set, sim.initial, CalibrationOptions())
+    graph, values = build_graph(replace(problem, fixed=np.zeros_like(problem.fixed), offsets=[]))
+    with pytest.raises(EstimatorError, match="marginal covariances failed: Indeterminate linear system") as info:
+        graph_marginals(graph, values)
+    assert info.value.stage == "marginal covariances" and info.value.hint
+    assert isinstance(info.value.__cause__, RuntimeError)
+
+
+def test_numerical_errors_name_the_stage_and_programming_errors_pass(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A numpy LinAlgError in the observability check reaches the caller as an EstimatorError of that
+    stage; a KeyError (a programming error) passes through calibrate() unchanged."""
+    sim = simulate_calibration(0, SceneConfig(n_calibration=12, n_validation=1))
+
+    def singular(*args: object, **kwargs: object) -> None:
+        raise np.linalg.LinAlgError("Singular matrix")
+
+    monkeypatch.setattr(calibrate_module, "information_schur", singular)
+    with pytest.raises(EstimatorError, match="observability check failed: Singular matrix") as info:
+        calibrate(sim.calibration_set, sim.initial)
+    assert info.value.stage == "observability check"
+
+    def bug(*args: object, **kwargs: object) -> None:
+        raise KeyError("a programming error")
+
+    monkeypatch.setattr(calibrate_module, "information_schur", bug)
+    with pytest.raises(KeyError, match="a programming error"):
+        calibrate(sim.calibration_set, sim.initial)

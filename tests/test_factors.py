@@ -5,8 +5,9 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 import pytest
+from gtsam.symbol_shorthand import J, X
 
-from dcc_fg.calibrate import KIN_KEY, gauge_fixed_kin, pose_key, snapshot_measurements, theta_key
+from dcc_fg.calibration_graph import KIN_KEY, gauge_fixed_kin, snapshot_measurements
 from dcc_fg.init import pnp_pose
 from dcc_fg.sim.calibration_scene import SceneConfig, simulate_calibration
 from factors import chain
@@ -62,8 +63,8 @@ def setup(L: int, robust: RobustLoss | None):
     cams = (data.static_camera, data.dynamic_camera)
     values = gtsam.Values()
     values.insert(KIN_KEY, sim.initial.kin[~fixed])
-    values.insert(theta_key(0), sim.joints_calibration[2] + 0.05)
-    values.insert(pose_key(0), gtsam.Pose3(sim.T_st_calibration[2]))
+    values.insert(J(0), sim.joints_calibration[2] + 0.05)
+    values.insert(X(0), gtsam.Pose3(sim.T_st_calibration[2]))
     return sim, layout, m, cams, values, int((~fixed).sum())
 
 
@@ -73,11 +74,9 @@ def setup(L: int, robust: RobustLoss | None):
 )
 def test_bundle_factor_jacobians(L: int, robust: RobustLoss | None) -> None:
     sim, layout, m, cams, values, nf = setup(L, robust)
-    keys = [KIN_KEY, pose_key(0)] if L == 0 else [KIN_KEY, theta_key(0), pose_key(0)]
-    f = bundle_factor(
-        layout, m, cams, 0.4, pose_key(0), KIN_KEY, theta_key(0) if L else None, None if L else np.zeros(0), robust
-    )
-    dims = [(KIN_KEY, nf)] + ([(theta_key(0), L)] if L else []) + [(pose_key(0), 6)]
+    keys = [KIN_KEY, X(0)] if L == 0 else [KIN_KEY, J(0), X(0)]
+    f = bundle_factor(layout, m, cams, 0.4, X(0), KIN_KEY, J(0) if L else None, None if L else np.zeros(0), robust)
+    dims = [(KIN_KEY, nf)] + ([(J(0), L)] if L else []) + [(X(0), 6)]
     A = analytic_jacobian(f, values, keys)
     N = numeric_jacobian(f, values, dims)
     assert_blocks_match(A, N, dims)
@@ -99,19 +98,19 @@ def test_two_way_factor_jacobians(L: int) -> None:
         cams,
         0.4,
         KIN_KEY,
-        theta_key(0) if L else None,
+        J(0) if L else None,
         None if L else np.zeros(0),
         RobustLoss("huber", 1.5),
     )
-    keys = [KIN_KEY] + ([theta_key(0)] if L else [])
-    dims = [(KIN_KEY, nf)] + ([(theta_key(0), L)] if L else [])
+    keys = [KIN_KEY] + ([J(0)] if L else [])
+    dims = [(KIN_KEY, nf)] + ([(J(0), L)] if L else [])
     A = analytic_jacobian(f, values, keys)
     N = numeric_jacobian(f, values, dims)
     assert_blocks_match(A, N, dims)
 
 
 def test_mean_prior_factor() -> None:
-    keys = [theta_key(i) for i in range(5)]
+    keys = [J(i) for i in range(5)]
     values = gtsam.Values()
     rng = np.random.default_rng(0)
     for k in keys:

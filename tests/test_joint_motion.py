@@ -13,10 +13,11 @@ import numpy as np
 import pytest
 
 from dcc_fg.auto_init import auto_initialize, pnp_T_ds
-from dcc_fg.calibrate import CalibrationOptions, calibrate, check_joint_motion
+from dcc_fg.calibrate import CalibrationOptions, calibrate
 from dcc_fg.data import CalibrationDataset
-from dcc_fg.joint_motion import MAX_CHI2_PER_DOF, two_axis_fit
+from dcc_fg.joint_motion import MAX_CHI2_PER_DOF, check_joint_motion, two_axis_fit
 from dcc_fg.sim.calibration_scene import SceneConfig, SimulatedCalibration, simulate_calibration, simulate_snapshots
+from factors import chain
 
 FAST = CalibrationOptions(compute_covariance=False)
 
@@ -67,8 +68,6 @@ def test_two_moving_joints_fit_the_two_joint_structure() -> None:
     """An L = 2 mechanism is a two-joint chain: chi-square about 1 per degree of freedom, and the
     fitted axes are joint 1's (in s) and joint 2's (in d; the +-12 deg range of joint 2 leaves the
     tilt of the plane about its chord weakly determined, hence the looser bound)."""
-    from factors import chain
-
     sim = simulate_calibration(0, SceneConfig(n_calibration=30, n_validation=1))
     fit = two_axis_fit(sim.calibration_set)
     assert fit.chi2 / fit.dof < 2.0

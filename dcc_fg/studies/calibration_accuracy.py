@@ -22,7 +22,8 @@ import gtsam
 import numpy as np
 from numpy.typing import NDArray
 
-from dcc_fg.calibrate import CalibrationResult, snapshot_measurements
+from dcc_fg.calibrate import CalibrationResult
+from dcc_fg.calibration_graph import snapshot_measurements
 from dcc_fg.data import CalibrationDataset
 from dcc_fg.model import GimbalCalibration
 from factors import chain
