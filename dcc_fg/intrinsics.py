@@ -41,6 +41,7 @@ from dcc_fg.io.camchain import CamchainEntry, camchain_to_yaml, load_camchain
 from dcc_fg.io.folders import IMAGE_SUFFIXES, list_timestamped, read_image
 from dcc_fg.io.outputs import write_text_atomic
 from dcc_fg.targets import TargetGeometry
+from dcc_fg.util.errors import stage
 from factors.camera import CameraModel
 
 log = logging.getLogger(__name__)
@@ -291,7 +292,8 @@ def calibrate_intrinsics(
         raise ValueError(f"{source}: the {model} calibration diverged (non-finite reprojection)")
     sq = np.concatenate([np.sum(r * r, axis=1) for r in residuals])
     rms = float(np.sqrt(sq.mean()))
-    std = intrinsics_std(camera, obj, rv, tv, residuals)
+    with stage("intrinsics covariance", hint="record views that cover the image and tilt the target"):
+        std = intrinsics_std(camera, obj, rv, tv, residuals)
     return IntrinsicsResult(
         camera=camera,
         std=dict(zip(PARAM_NAMES[dist_model], std.tolist(), strict=True)),

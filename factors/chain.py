@@ -225,8 +225,25 @@ def transform_points(
         d_kin[:, :, k] = p_s @ (R_db @ dR).T
     d_kin[:, :, 3:6] = R_db
 
-    # DH links and joint angles
-    for l in range(1, L + 1):
+    link_jacobians(dh, theta, q, carry, d_kin, d_theta)
+    R_ds = R_db @ R_bs
+    return p_d, ChainJacobians(d_kin=d_kin, d_theta=d_theta, d_point=R_ds)
+
+
+def link_jacobians(
+    dh: FloatArray,
+    theta: FloatArray,
+    q: list[FloatArray],
+    carry: list[FloatArray],
+    d_kin: FloatArray,
+    d_theta: FloatArray,
+) -> None:
+    """Fill the DH-link columns of ``d_kin`` and all of ``d_theta`` (:func:`transform_points`, in place).
+
+    ``q[l]`` (N, 3) are the points in link frame l (q[0] in the base frame, metres) and ``carry[l]``
+    = d p_d / d q_l (3x3); see the derivation in :func:`transform_points`.
+    """
+    for l in range(1, dh.shape[0] + 1):
         d, a, alpha = dh[l - 1]
         th = theta[l - 1]
         Rxm = rot_x(-alpha)
@@ -239,9 +256,6 @@ def transform_points(
         d_kin[:, :, col + 0] = C @ (-Rxm @ E_Z)
         d_kin[:, :, col + 1] = C @ (-E_X)
         d_kin[:, :, col + 2] = dq_dalpha @ C.T
-
-    R_ds = R_db @ R_bs
-    return p_d, ChainJacobians(d_kin=d_kin, d_theta=d_theta, d_point=R_ds)
 
 
 def inverse_transform_points(
