@@ -6,6 +6,7 @@ written to a temporary folder, so no globally installed ``python3`` kernel is ne
 
 from __future__ import annotations
 
+import ast
 import json
 import sys
 from pathlib import Path
@@ -52,6 +53,22 @@ def test_notebook_outputs_are_stripped(path: Path) -> None:
             assert cell.outputs == [] and cell.execution_count is None, f"{path.name}: cell {i} has outputs"
 
 
+@pytest.mark.parametrize("path", NOTEBOOKS, ids=[p.stem for p in NOTEBOOKS])
+def test_notebook_imports_resolve(path: Path) -> None:
+    """The notebook's import statements run (fast-lane guard for moved modules; the full run is slow)."""
+    nbformat = pytest.importorskip("nbformat")
+    nb = nbformat.read(path, as_version=4)
+    imports: list[ast.stmt] = []
+    for cell in nb.cells:
+        if cell.cell_type == "code":
+            python = "\n".join(ln for ln in cell.source.splitlines() if not ln.lstrip().startswith(("%", "!")))
+            tree = ast.parse(python)
+            imports += [n for n in ast.walk(tree) if isinstance(n, ast.Import | ast.ImportFrom)]
+    assert imports, f"{path.name}: no import statements found"
+    exec(compile(ast.Module(body=imports, type_ignores=[]), str(path), "exec"), {})  # noqa: S102
+
+
+@pytest.mark.slow
 @pytest.mark.parametrize("path", NOTEBOOKS, ids=[p.stem for p in NOTEBOOKS])
 def test_notebook_runs(path: Path, tmp_path: Path, kernel_manager_factory) -> None:  # noqa: ANN001
     nbformat = pytest.importorskip("nbformat")
