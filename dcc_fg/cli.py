@@ -16,12 +16,13 @@ import argparse
 import logging
 import sys
 
+import numpy as np
 import yaml
 
 from dcc_fg.commands import calibrate, common, config, demo, evaluate, intrinsics, simulate, vio
 from dcc_fg.util.errors import NUMERICAL_ERRORS, EstimatorError
 from dcc_fg.util.logs import configure_logging
-from dcc_fg.util.provenance import package_version
+from dcc_fg.util.provenance import package_version, set_command_line
 
 log = logging.getLogger("dcc_fg.cli")
 
@@ -56,7 +57,7 @@ def report_failure(command: str, exc: BaseException) -> int:
         text = str(exc)
     elif isinstance(exc, yaml.YAMLError):
         text = f"malformed YAML: {' '.join(str(exc).split())}"
-    elif isinstance(exc, NUMERICAL_ERRORS) and not isinstance(exc, ValueError | FileNotFoundError):
+    elif isinstance(exc, np.linalg.LinAlgError) or (isinstance(exc, RuntimeError) and not isinstance(exc, OSError)):
         detail = " ".join(str(exc).split()) or type(exc).__name__
         text = f"{command} failed in the estimator: {detail} (hint: {GENERIC_HINT})"
     else:
@@ -68,6 +69,7 @@ def report_failure(command: str, exc: BaseException) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    set_command_line(None if argv is None else ["dcc-fg", *argv])
     configure_logging(getattr(args, "verbose", 0), getattr(args, "quiet", False))
     try:
         return int(args.func(args))

@@ -18,7 +18,7 @@ from dcc_fg.cli import main
 from dcc_fg.commands.calibrate import CalibrateConfig, ValidateConfig
 from dcc_fg.commands.config import CONFIGS, config_text
 from dcc_fg.commands.vio import VioConfig
-from dcc_fg.sim.write_dataset import RenderedCalibration, write_calibration_dataset
+from dcc_fg.sim.write_dataset import CalibrationSimSpec, RenderedCalibration, write_calibration_dataset
 from dcc_fg.util.config import ConfigError, apply_overrides, from_dict, load_yaml_config, to_plain
 from dcc_fg.util.errors import EstimatorError, stage
 from dcc_fg.util.logs import configure_logging
@@ -109,7 +109,8 @@ def test_version_comes_from_the_installed_package() -> None:
 
 @pytest.fixture(scope="module")
 def small(tmp_path_factory: pytest.TempPathFactory) -> RenderedCalibration:
-    return write_calibration_dataset(tmp_path_factory.mktemp("small"), "checkerboard", "folder", seed=3, n_snapshots=12)
+    spec = CalibrationSimSpec("checkerboard", "folder", seed=3, n_snapshots=12)
+    return write_calibration_dataset(tmp_path_factory.mktemp("small"), spec)
 
 
 def _calibrate_argv(r: RenderedCalibration, out: Path, *extra: str) -> list[str]:
@@ -119,6 +120,7 @@ def _calibrate_argv(r: RenderedCalibration, out: Path, *extra: str) -> list[str]
     ]  # fmt: skip
 
 
+@pytest.mark.slow
 def test_calibrate_summary_records_version_options_inputs_and_reproduces(small: RenderedCalibration, tmp_path: Path):
     first = tmp_path / "first"
     assert main(_calibrate_argv(small, first, "--robust", "huber", "--robust-k", "3", "--corners", "common")) == 0
@@ -142,7 +144,7 @@ def test_calibrate_summary_records_version_options_inputs_and_reproduces(small: 
     assert (second / "joint_angles.csv").read_text() == (first / "joint_angles.csv").read_text()
     again = json.loads((second / "summary.json").read_text())
     assert again["options"] == summary["options"]
-    assert again["calibration"] == summary["calibration"]
+    assert again["reprojection_error_px"] == summary["reprojection_error_px"]
 
     # a flag overrides the config file
     third = tmp_path / "third"
@@ -220,6 +222,7 @@ def test_logging_levels(capsys, verbose: int, quiet: bool, shown: set[str]) -> N
     configure_logging()
 
 
+@pytest.mark.slow
 def test_validate_accepts_a_config(small: RenderedCalibration, tmp_path: Path) -> None:
     cal = tmp_path / "cal"
     assert main(_calibrate_argv(small, cal)) == 0
@@ -239,3 +242,29 @@ def test_vio_defaults_match_the_former_command_line_defaults() -> None:
     c = VioConfig()
     assert (c.smoother.mode, c.smoother.keyframe_every, c.smoother.lag) == ("dcc", 3, 1.5)
     assert (c.run.pixel_sigma, c.run.sync_tolerance_ms, c.run.frontend_worker) == (1.0, 5.0, "auto")
+
+
+@pytest.mark.slow
+def test_vio_run_reproduced_from_its_summary(tmp_path: Path) -> None:
+    """A short rendered flight: the options of run 1 (recorded in summary.json) -> config -> run 2."""
+    flight = tmp_path / "flight"
+    argv = ["simulate", "flight", "--out", str(flight), "--duration", "6", "--scale", "0.5", "-q"]
+    assert main(argv) == 0
+    base = ["vio", str(flight / "flight"), "--calibration", str(flight / "calibration.yaml"), "-q"]
+    first = tmp_path / "first"
+    assert main([*base, "--out", str(first), "--frontend", "inline", "--keyframe-every", "2", "--lag", "1.2"]) == 0
+    summary = json.loads((first / "summary.json").read_text())
+    assert summary["command"] == "vio" and summary["dcc_fg_version"] == dcc_fg.__version__
+    assert summary["options"]["smoother"]["keyframe_every"] == 2 and summary["options"]["smoother"]["lag"] == 1.2
+    assert summary["options"]["run"]["frontend_worker"] == "inline" and "sigma" not in summary["options"]["smoother"]
+    assert summary["effective_options"]["smoother"]["sigma"] > 0
+    assert summary["effective_options"]["pipeline"]["frontend"]["max_features"] > 0
+    assert summary["inputs"]["calibration"] == str((flight / "calibration.yaml").resolve())
+
+    cfg = tmp_path / "vio.yaml"
+    assert main(["config", "--print", "vio", "--from", str(first / "summary.json"), "--out", str(cfg)]) == 0
+    second = tmp_path / "second"
+    assert main([*base, "--out", str(second), "--config", str(cfg)]) == 0
+    assert (second / "trajectory.tum").read_text() == (first / "trajectory.tum").read_text()
+    assert (second / "joint_angles.csv").read_text() == (first / "joint_angles.csv").read_text()
+    assert json.loads((second / "summary.json").read_text())["effective_options"] == summary["effective_options"]

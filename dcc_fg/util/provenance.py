@@ -13,6 +13,16 @@ from dcc_fg.util.config import to_plain
 
 PACKAGE = "dcc-fg"
 
+#: The command line of the running ``dcc-fg`` command (set by :func:`dcc_fg.cli.main`, which may be
+#: called with an explicit argv from Python); None means ``sys.argv``.
+_command_line: list[str] | None = None
+
+
+def set_command_line(argv: Sequence[str] | None) -> None:
+    """Record the command line that :func:`run_record` reports (None: ``sys.argv``)."""
+    global _command_line
+    _command_line = None if argv is None else list(argv)
+
 
 def package_version(name: str = PACKAGE) -> str:
     """Installed version of a distribution (``unknown`` when it is not installed)."""
@@ -37,7 +47,7 @@ def run_record(
     return {
         "dcc_fg_version": package_version(),
         "command": command,
-        "command_line": list(sys.argv if argv is None else argv),
+        "command_line": list(argv if argv is not None else _command_line if _command_line is not None else sys.argv),
         "inputs": {k: str(Path(v).resolve()) for k, v in inputs.items() if v is not None},
         "options": to_plain(options),
         "environment": {
