@@ -230,6 +230,7 @@ def test_report_pdf_pages_and_pngs(small, tmp_path: Path) -> None:  # noqa: ANN0
     assert not list(tmp_path.glob(".*"))  # no temporary files left behind
 
 
+@pytest.mark.slow  # renders a 12-snapshot image set, calibrates and validates twice (~30-90 s)
 def test_calibrate_cli_report(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """``dcc-fg calibrate IMAGES ... --report`` on a small rendered image folder, then ``validate --report``."""
     from dcc_fg import load_calibration
