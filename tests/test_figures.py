@@ -16,12 +16,24 @@ from matplotlib.container import ErrorbarContainer  # noqa: E402
 from matplotlib.figure import Figure  # noqa: E402
 from matplotlib.patches import Circle  # noqa: E402
 
-from dcc_fg import report  # noqa: E402
+from dcc_fg import load_calibration, report  # noqa: E402
 from dcc_fg.calibrate import CalibrationOptions, CalibrationResult, calibrate  # noqa: E402
-from dcc_fg.plots import chain3d  # noqa: E402
-from dcc_fg.plots.calibration import snapshot_rms  # noqa: E402
-from dcc_fg.sim.calibration_scene import SceneConfig, SimulatedCalibration, simulate_calibration  # noqa: E402
+from dcc_fg.cli import main  # noqa: E402
+from dcc_fg.io.camchain import CamchainEntry  # noqa: E402
+from dcc_fg.model import GimbalCalibration  # noqa: E402
+from dcc_fg.plots import chain3d, distance_travelled  # noqa: E402
+from dcc_fg.plots.calibration import noise_sigma, snapshot_rms  # noqa: E402
+from dcc_fg.sim.calibration_scene import (  # noqa: E402
+    SceneConfig,
+    SimulatedCalibration,
+    simulate_calibration,
+    true_kinematics,
+)
+from dcc_fg.sim.write_dataset import CalibrationSimSpec, write_calibration_dataset  # noqa: E402
+from dcc_fg.sources.dataset import load_dataset  # noqa: E402
 from factors import chain  # noqa: E402
+from factors.camera import CameraModel  # noqa: E402
+from tests.conftest import shared_data  # noqa: E402
 
 K = 20  # snapshots of the small L = 2 problem (fast; the figures do not need the demo's 81)
 
@@ -137,7 +149,6 @@ def test_parameter_figure_marks_status(small) -> None:  # noqa: ANN001
 
 @pytest.mark.parametrize("L", [0, 1, 2, 3])
 def test_chain_figure_frames(L: int) -> None:
-    from dcc_fg.sim.calibration_scene import true_kinematics
 
     truth = true_kinematics(L)
     theta = np.linspace(0.2, 0.5, L)
@@ -193,7 +204,6 @@ def test_vio_figures() -> None:
     fig = report.error_over_distance_figure(gt, est)
     (ax,) = fig.axes
     assert len(ax.lines) == 3
-    from dcc_fg.plots import distance_travelled
 
     d = distance_travelled(gt)
     assert np.allclose(ax.lines[0].get_xdata(), d)
@@ -202,7 +212,6 @@ def test_vio_figures() -> None:
 
 
 def test_vio_figures_reject_bad_input() -> None:
-    from dcc_fg.plots import distance_travelled
 
     square = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0, 0, 0]], float)
     assert distance_travelled(square)[-1] == pytest.approx(4.0)
@@ -233,10 +242,6 @@ def test_report_pdf_pages_and_pngs(small, tmp_path: Path) -> None:  # noqa: ANN0
 @pytest.mark.slow  # renders a 12-snapshot image set, calibrates and validates twice (~30-90 s)
 def test_calibrate_cli_report(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """``dcc-fg calibrate IMAGES ... --report`` on a small rendered image folder, then ``validate --report``."""
-    from dcc_fg import load_calibration
-    from dcc_fg.cli import main
-    from dcc_fg.sim.write_dataset import CalibrationSimSpec, write_calibration_dataset
-
     spec = CalibrationSimSpec("checkerboard", "folder", seed=5, n_snapshots=12)
     r = write_calibration_dataset(tmp_path / "set", spec)
     files = ["--camchain", str(r.camchain), "--target", str(r.target)]
@@ -260,13 +265,6 @@ def test_calibrate_cli_report(tmp_path: Path, capsys: pytest.CaptureFixture[str]
 
 def test_figures_on_real_euroc_stereo_pair() -> None:
     """The EuRoC VI-sensor stereo pair (real AprilGrid detections) as an L = 0 cluster."""
-    from dcc_fg.io.camchain import CamchainEntry
-    from dcc_fg.model import GimbalCalibration
-    from dcc_fg.plots.calibration import noise_sigma
-    from dcc_fg.sources.dataset import load_dataset
-    from factors.camera import CameraModel
-    from tests.conftest import shared_data
-
     root = shared_data("euroc_aprilgrid/calib/cam_april")
     # intrinsics from EuRoC's sensor.yaml (cam0, cam1)
     c0 = CameraModel(
