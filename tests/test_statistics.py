@@ -10,6 +10,8 @@ from dcc_fg.calibrate import CalibrationOptions, calibrate
 from dcc_fg.sim.calibration_scene import simulate_calibration
 from dcc_fg.studies.calibration_accuracy import cramer_rao_bound, evaluate_against_truth, nees_T_ds
 
+pytestmark = pytest.mark.slow  # a 20-seed study (~9 min on a loaded 2-core machine)
+
 SEEDS = range(20)
 # 95% interval of the mean of 20 independent chi-square(6) variables: chi2(120) quantiles / 20.
 # It is exact for one snapshot per seed (the seeds are independent). For the mean over all 81

@@ -280,145 +280,80 @@ def run_validate(
 
 def add_reader_flags(p: argparse.ArgumentParser) -> None:
     """Options shared by calibrate and validate: image pairing, snapshot selection, report."""
-    p.add_argument(
-        "--sync-tolerance",
-        dest="reader.sync_tolerance_ms",
-        type=float,
-        default=common.SUPPRESS,
-        metavar="MS",
-        help="largest time difference between a static and a dynamic image of one snapshot, milliseconds; frames "
-        "without a partner are reported (default 5)",
-    )
-    p.add_argument(
-        "--min-common-points",
-        dest="reader.min_common_points",
-        type=int,
-        default=common.SUPPRESS,
-        metavar="N",
-        help="use a snapshot only if both cameras see at least N of the same target corners (default 8)",
-    )
-    p.add_argument(
-        "--corners",
-        dest="reader.corners",
-        choices=["all", "common"],
-        default=common.SUPPRESS,
-        help="all: every detected corner of each camera (the maximum-likelihood use of the data, default); "
-        "common: only the corners both cameras of a snapshot see, as cv2.stereoCalibrate uses them. common helps "
-        "when the intrinsics fit the image periphery badly, where only one camera tends to see the board",
-    )
-    p.add_argument(
-        "--report",
-        dest="output.report",
-        action="store_true",
-        default=common.SUPPRESS,
-        help="also save the figures (OUT/calibration_*.png) and OUT/report.pdf",
-    )
+    opt = common.add_option
+    opt(p, "--sync-tolerance", "reader.sync_tolerance_ms", type=float, metavar="MS", help="largest time difference "
+        "between a static and a dynamic image of one snapshot, milliseconds; frames without a partner are reported "
+        "(default 5)")  # fmt: skip
+    opt(p, "--min-common-points", "reader.min_common_points", type=int, metavar="N",
+        help="use a snapshot only if both cameras see at least N of the same target corners (default 8)")  # fmt: skip
+    opt(p, "--corners", "reader.corners", choices=["all", "common"], help="all: every detected corner of each camera "
+        "(the maximum-likelihood use of the data, default); common: only the corners both cameras of a snapshot see, "
+        "as cv2.stereoCalibrate uses them. common helps when the intrinsics fit the image periphery badly, where "
+        "only one camera tends to see the board")  # fmt: skip
+    opt(p, "--report", "output.report", action="store_true",
+        help="also save the figures (OUT/calibration_*.png) and OUT/report.pdf")  # fmt: skip
 
 
 def add_solver_flags(c: argparse.ArgumentParser) -> None:
     """The initial-value and solver options of ``calibrate``."""
-    c.add_argument(
-        "--joints", dest="init.joints", type=int, default=common.SUPPRESS, help="number of joints L when no --gimbal"
-    )
-    c.add_argument(
-        "--init",
-        dest="init.method",
-        choices=["auto", "gimbal"],
-        default=common.SUPPRESS,
-        help="initial values: 'gimbal' reads --gimbal; 'auto' estimates axes, DH links, mounts and joint "
-        "angles from per-snapshot PnP (needs --joints). Default: gimbal if --gimbal is given, else auto",
-    )
-    c.add_argument(
-        "--mode",
-        dest="solver.mode",
-        default=common.SUPPRESS,
-        choices=["encoderless", "encoders"],
-        help="joint angles unknown (encoderless, default) or read from joints.csv / JointState (encoders)",
-    )
-    c.add_argument(
-        "--formulation",
-        dest="solver.formulation",
-        default=common.SUPPRESS,
-        choices=["bundle", "two_way"],
-        help="maximum-likelihood bundle (default) or the paper's two-way error",
-    )
-    c.add_argument(
-        "--pixel-sigma",
-        dest="solver.pixel_sigma",
-        type=float,
-        default=common.SUPPRESS,
-        help="corner noise in pixels (1 sigma); default: estimated from the residuals",
-    )
-    c.add_argument(
-        "--robust",
-        dest="solver.robust",
-        choices=["huber", "cauchy"],
-        default=common.SUPPRESS,
-        help="per-corner robust loss (default: none, plain least squares)",
-    )
-    c.add_argument(
-        "--robust-k",
-        dest="solver.robust_k",
-        type=float,
-        default=common.SUPPRESS,
-        help="robust loss threshold in pixels (default 2)",
-    )
+    opt = common.add_option
+    opt(c, "--joints", "init.joints", type=int, help="number of joints L when no --gimbal is given")
+    opt(c, "--init", "init.method", choices=["auto", "gimbal"], help="initial values: 'gimbal' reads --gimbal; "
+        "'auto' estimates axes, DH links, mounts and joint angles from per-snapshot PnP (needs --joints). Default: "
+        "gimbal if --gimbal is given, else auto")  # fmt: skip
+    opt(c, "--mode", "solver.mode", choices=["encoderless", "encoders"],
+        help="joint angles unknown (encoderless, default) or read from joints.csv / JointState (encoders)")  # fmt: skip
+    opt(c, "--formulation", "solver.formulation", choices=["bundle", "two_way"],
+        help="maximum-likelihood bundle (default) or the paper's two-way error")  # fmt: skip
+    opt(c, "--pixel-sigma", "solver.pixel_sigma", type=float,
+        help="corner noise in pixels (1 sigma); default: estimated from the residuals")  # fmt: skip
+    opt(c, "--robust", "solver.robust", choices=["huber", "cauchy"],
+        help="per-corner robust loss (default: none, plain least squares)")  # fmt: skip
+    opt(c, "--robust-k", "solver.robust_k", type=float, help="robust loss threshold in pixels (default 2)")
+
+
+def add_input_flags(p: argparse.ArgumentParser, camchain_help: str, target_help: str) -> None:
+    """DATA, --camchain and --target of calibrate and validate."""
+    p.add_argument("data", help="ROS1 .bag, ROS2 bag folder, image folder (cam0/, cam1/) or detection folder")
+    p.add_argument("--camchain", help=camchain_help)
+    p.add_argument("--target", help=target_help)
 
 
 def add_parsers(sub: Any, parent: argparse.ArgumentParser) -> None:
     """Register ``calibrate`` and ``validate``."""
-    c = sub.add_parser(
-        "calibrate",
-        parents=[parent],
-        help="calibrate a DCC from target snapshots (bag, image folder or detection folder)",
-        description="Estimate the gimbal kinematics (tau_s, tau_d in rad/m, DH d/a in m, alpha in rad) and, in "
-        "encoderless mode, the joint angles (rad) of every snapshot.",
-    )
-    c.add_argument("data", help="ROS1 .bag, ROS2 bag folder, image folder (cam0/, cam1/) or detection folder")
-    c.add_argument(
-        "--camchain",
-        help="Kalibr camchain YAML: cam0 (static) and cam1 (dynamic) intrinsics in pixels, distortion, resolution and, "
+    c = common.add_command(
+        sub, "calibrate", parent, "calibrate a DCC from target snapshots (bag, image folder or detection folder)",
+        "Estimate the gimbal kinematics (tau_s, tau_d in rad/m, DH d/a in m, alpha in rad) and, in encoderless mode, "
+        "the joint angles (rad) of every snapshot.", calibrate_command,
+    )  # fmt: skip
+    add_input_flags(
+        c, "Kalibr camchain YAML: cam0 (static) and cam1 (dynamic) intrinsics in pixels, distortion, resolution and, "
         "for bags, each camera's image rostopic",
-    )
-    c.add_argument(
-        "--target",
-        help="Kalibr target YAML (checkerboard or aprilgrid; sizes in metres); detection folders carry their own",
-    )
+        "Kalibr target YAML (checkerboard or aprilgrid; sizes in metres); detection folders carry their own",
+    )  # fmt: skip
     c.add_argument("--gimbal", help="initial kinematics YAML (joints, tau_s, tau_d, dh; rad and m)")
     add_solver_flags(c)
-    c.add_argument(
-        "--out",
-        default="dcc_fg_calibration",
-        help="output folder for calibration.yaml, joint_angles.csv (ns, rad) and summary.json; files are replaced "
-        "atomically and only after a successful run (default ./dcc_fg_calibration)",
-    )
+    c.add_argument("--out", default="dcc_fg_calibration", help="output folder for calibration.yaml, joint_angles.csv "
+                   "(ns, rad) and summary.json; files are replaced atomically and only after a successful run "
+                   "(default ./dcc_fg_calibration)")  # fmt: skip
     add_reader_flags(c)
     common.add_config_flag(c, "calibrate")
-    c.set_defaults(func=calibrate_command)
 
-    v = sub.add_parser(
-        "validate",
-        parents=[parent],
-        help="hold a calibration fixed and estimate only the joint angles of new snapshots",
-        description="The paper's validation procedure: kinematics held at --calibration, joint angles (rad) estimated.",
-    )
-    v.add_argument("data", help="ROS1 .bag, ROS2 bag folder, image folder (cam0/, cam1/) or detection folder")
+    v = common.add_command(
+        sub, "validate", parent, "hold a calibration fixed and estimate only the joint angles of new snapshots",
+        "The paper's validation procedure: kinematics held at --calibration, joint angles (rad) estimated.",
+        validate_command,
+    )  # fmt: skip
+    add_input_flags(
+        v, "Kalibr camchain YAML (default: the intrinsics stored in the calibration; a bag then needs --camchain for "
+        "its image topics)", "Kalibr target YAML (checkerboard or aprilgrid; sizes in metres)",
+    )  # fmt: skip
     v.add_argument("--calibration", required=True, help="calibration.yaml written by dcc-fg calibrate")
-    v.add_argument(
-        "--camchain",
-        help="Kalibr camchain YAML (default: the intrinsics stored in the calibration; a bag then needs --camchain "
-        "for its image topics)",
-    )
-    v.add_argument("--target", help="Kalibr target YAML (checkerboard or aprilgrid; sizes in metres)")
-    v.add_argument(
-        "--out",
-        default="dcc_fg_validation",
-        help="output folder for calibration.yaml (the held kinematics), joint_angles.csv (ns, rad) and "
-        "summary.json; written only after a successful run (default ./dcc_fg_validation)",
-    )
+    v.add_argument("--out", default="dcc_fg_validation", help="output folder for calibration.yaml (the held "
+                   "kinematics), joint_angles.csv (ns, rad) and summary.json; written only after a successful run "
+                   "(default ./dcc_fg_validation)")  # fmt: skip
     add_reader_flags(v)
     common.add_config_flag(v, "validate")
-    v.set_defaults(func=validate_command)
 
 
 def calibrate_command(args: argparse.Namespace) -> int:

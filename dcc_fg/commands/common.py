@@ -43,6 +43,20 @@ def verbosity_parent() -> argparse.ArgumentParser:
     return p
 
 
+def add_command(
+    sub: Any, name: str, parent: argparse.ArgumentParser | None, summary: str, description: str, func: Any
+) -> argparse.ArgumentParser:
+    """A subcommand ``name`` with the verbosity flags of ``parent`` that runs ``func(args)``."""
+    p = sub.add_parser(name, parents=[parent] if parent else [], help=summary, description=description)
+    p.set_defaults(func=func)
+    return p
+
+
+def add_option(p: argparse.ArgumentParser, flag: str, dest: str, help: str, **kwargs: Any) -> None:
+    """A flag that sets the configuration option ``dest`` (``section.key``) only when given."""
+    p.add_argument(flag, dest=dest, default=SUPPRESS, help=help, **kwargs)
+
+
 def add_config_flag(p: argparse.ArgumentParser, command: str) -> None:
     """``--config FILE``: options from a YAML file (``dcc-fg config --print COMMAND`` writes one)."""
     p.add_argument(

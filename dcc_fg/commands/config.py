@@ -11,6 +11,7 @@ import json
 from pathlib import Path
 from typing import Any
 
+from dcc_fg.commands import common
 from dcc_fg.commands.calibrate import CalibrateConfig, ValidateConfig
 from dcc_fg.commands.vio import VioConfig, check_config, config_text_vio
 from dcc_fg.io.outputs import write_text_atomic
@@ -18,6 +19,13 @@ from dcc_fg.util.config import ConfigError, dump_yaml, from_dict
 from dcc_fg.util.provenance import package_version
 
 CONFIGS: dict[str, type] = {"calibrate": CalibrateConfig, "validate": ValidateConfig, "vio": VioConfig}
+
+
+CONFIG_SUMMARY = "print a command's options as a YAML file for --config"
+CONFIG_DESCRIPTION = (
+    "Writes every option of a command with its default (or, with --from, the options an earlier "
+    "run recorded in its summary.json) as YAML that the command reads back with --config FILE."
+)
 
 
 def options_of_run(summary: Path, command: str) -> Any:
@@ -64,15 +72,8 @@ def config_command(args: argparse.Namespace) -> int:
 
 
 def add_parser(sub: Any, parent: argparse.ArgumentParser) -> None:
-    c = sub.add_parser(
-        "config",
-        parents=[parent],
-        help="print a command's options as a YAML file for --config",
-        description="Writes every option of a command with its default (or, with --from, the options an earlier "
-        "run recorded in its summary.json) as YAML that the command reads back with --config FILE.",
-    )
+    c = common.add_command(sub, "config", parent, CONFIG_SUMMARY, CONFIG_DESCRIPTION, config_command)
     c.add_argument("--print", required=True, choices=sorted(CONFIGS), help="the command whose options to print")
     c.add_argument("--from", dest="source", metavar="SUMMARY_JSON", help="take the options of an earlier run")
     c.add_argument("--out", help="write to this file instead of standard output")
     c.add_argument("--force", action="store_true", help="replace --out if it exists")
-    c.set_defaults(func=config_command)

@@ -20,26 +20,24 @@ class DemoOptions:
     report: bool = False
 
 
+DEMO_SUMMARY = "simulate the paper's study, calibrate, validate and compare with its Tables I-III"
+DEMO_DESCRIPTION = (
+    "Simulates the paper's 2-DOF gimbal study (81 calibration + 81 validation snapshots, 9x7 "
+    "chessboard, 0.4 px noise), runs encoderless calibration (bundle and two-way formulations) and validation, "
+    "prints a table beside the paper's Tables I-III and writes calibration.yaml, joint_angles.csv, summary.json."
+)
+
+
 def demo_command(args: argparse.Namespace) -> int:
     options = DemoOptions(args.seed, args.joints, args.report)
     provenance = common.record("demo", {}, options)
-    run_demo(
-        Path(args.out), seed=options.seed, n_joints=options.joints, report=options.report, provenance=provenance
-    )
+    run_demo(Path(args.out), seed=options.seed, n_joints=options.joints, report=options.report, provenance=provenance)
     return 0
 
 
 def add_parser(sub: Any, parent: argparse.ArgumentParser) -> None:
-    d = sub.add_parser(
-        "demo",
-        parents=[parent],
-        help="simulate the paper's study, calibrate, validate and compare with its Tables I-III",
-        description="Simulates the paper's 2-DOF gimbal study (81 calibration + 81 validation snapshots, 9x7 "
-        "chessboard, 0.4 px noise), runs encoderless calibration (bundle and two-way formulations) and validation, "
-        "prints a table beside the paper's Tables I-III and writes calibration.yaml, joint_angles.csv, summary.json.",
-    )
+    d = common.add_command(sub, "demo", parent, DEMO_SUMMARY, DEMO_DESCRIPTION, demo_command)
     d.add_argument("--out", default="dcc_fg_demo", help="output folder (default: ./dcc_fg_demo)")
     d.add_argument("--seed", type=int, default=0, help="random seed of the simulation (default 0)")
     d.add_argument("--joints", type=int, default=2, choices=[0, 1, 2, 3], help="number of gimbal joints L (default 2)")
     d.add_argument("--report", action="store_true", help="also write OUT/report.pdf (tables and figures)")
-    d.set_defaults(func=demo_command)

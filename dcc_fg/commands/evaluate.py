@@ -6,8 +6,16 @@ import argparse
 from pathlib import Path
 from typing import Any
 
+from dcc_fg.commands import common
 from dcc_fg.plots.vio_output import write_vio_figures
 from dcc_fg.vio.evaluate import evaluate_output, format_evaluation
+
+EVALUATE_SUMMARY = "score a VIO run (trajectory.tum, joint_angles.csv) against ground truth"
+EVALUATE_DESCRIPTION = (
+    "APE/RPE with evo (SE(3) alignment; Sim(3) for mono runs), normalized translation RMSE (%% of "
+    "distance) and rotation RMSE (rad/m) as in the paper's Table IV, joint-angle RMSE per joint (Table V). "
+    "Writes OUT/evaluation.json."
+)
 
 
 def evaluate_command(args: argparse.Namespace) -> int:
@@ -21,14 +29,7 @@ def evaluate_command(args: argparse.Namespace) -> int:
 
 
 def add_parser(sub: Any, parent: argparse.ArgumentParser) -> None:
-    e = sub.add_parser(
-        "evaluate",
-        parents=[parent],
-        help="score a VIO run (trajectory.tum, joint_angles.csv) against ground truth",
-        description="APE/RPE with evo (SE(3) alignment; Sim(3) for mono runs), normalized translation RMSE (%% of "
-        "distance) and rotation RMSE (rad/m) as in the paper's Table IV, joint-angle RMSE per joint (Table V). "
-        "Writes OUT/evaluation.json.",
-    )
+    e = common.add_command(sub, "evaluate", parent, EVALUATE_SUMMARY, EVALUATE_DESCRIPTION, evaluate_command)
     e.add_argument("out", help="output folder of dcc-fg vio (trajectory.tum, summary.json, joint_angles.csv)")
     e.add_argument(
         "--ground-truth",
@@ -39,4 +40,3 @@ def add_parser(sub: Any, parent: argparse.ArgumentParser) -> None:
     e.add_argument(
         "--align", default="auto", choices=["auto", "se3", "sim3", "none"], help="default: sim3 for mono, else se3"
     )
-    e.set_defaults(func=evaluate_command)

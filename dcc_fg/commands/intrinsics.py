@@ -6,9 +6,17 @@ import argparse
 from pathlib import Path
 from typing import Any
 
+from dcc_fg.commands import common
 from dcc_fg.intrinsics import intrinsics_table, run_intrinsics
 from dcc_fg.io.outputs import write_json
 from dcc_fg.targets import load_target
+
+INTRINSICS_SUMMARY = "calibrate one camera's intrinsics and write a Kalibr camchain YAML"
+INTRINSICS_DESCRIPTION = (
+    "Detect the target in one camera's images (bag topic or DATA/<camera>/<timestamp_ns>.png), "
+    "calibrate pinhole intrinsics (fx, fy, cx, cy in pixels) and distortion with OpenCV, print the RMS "
+    "reprojection error (pixels) and every parameter's 1-sigma, and write/update the camchain entry."
+)
 
 
 def intrinsics_command(args: argparse.Namespace) -> int:
@@ -34,14 +42,7 @@ def intrinsics_command(args: argparse.Namespace) -> int:
 
 
 def add_parser(sub: Any, parent: argparse.ArgumentParser) -> None:
-    i = sub.add_parser(
-        "intrinsics",
-        parents=[parent],
-        help="calibrate one camera's intrinsics and write a Kalibr camchain YAML",
-        description="Detect the target in one camera's images (bag topic or DATA/<camera>/<timestamp_ns>.png), "
-        "calibrate pinhole intrinsics (fx, fy, cx, cy in pixels) and distortion with OpenCV, print the RMS "
-        "reprojection error (pixels) and every parameter's 1-sigma, and write/update the camchain entry.",
-    )
+    i = common.add_command(sub, "intrinsics", parent, INTRINSICS_SUMMARY, INTRINSICS_DESCRIPTION, intrinsics_command)
     i.add_argument("data", help="ROS1 .bag, ROS2 bag folder, or a folder with <camera>/<timestamp_ns>.png images")
     i.add_argument("--target", required=True, help="Kalibr target YAML (checkerboard or aprilgrid; metres)")
     i.add_argument("--camera", default="cam0", help="camchain entry and image sub-folder (default cam0)")
@@ -60,4 +61,3 @@ def add_parser(sub: Any, parent: argparse.ArgumentParser) -> None:
     )
     i.add_argument("--out", default="camchain.yaml", help="camchain YAML to write or update (default camchain.yaml)")
     i.add_argument("--summary", help="optional JSON file with the parameters, 1-sigma and reprojection error")
-    i.set_defaults(func=intrinsics_command)

@@ -6,10 +6,30 @@ import argparse
 from pathlib import Path
 from typing import Any
 
+from dcc_fg.commands import common
 from dcc_fg.sim.flight_bag import write_flight
 from dcc_fg.sim.render import RenderConfig
 from dcc_fg.sim.trajectory import FlightConfig, locked_gimbal
 from dcc_fg.sim.write_dataset import DYNAMIC_TOPIC, STATIC_TOPIC, CalibrationSimSpec, write_calibration_dataset
+
+CALIBRATION_SUMMARY = "render a calibration data set of the paper's scenario (images + camchain/target/gimbal + truth)"
+CALIBRATION_DESCRIPTION = (
+    "Simulates the paper's 2-DOF gimbal calibration scenario (two 640x480 cameras, fx ~ 460 px, "
+    "mild radial-tangential distortion, board 0.6-1.2 m away, joint angles on a jittered grid over the joint "
+    "ranges) and renders every snapshot's two images through the true camera models, distortion included, "
+    "with Gaussian blur and noise. Writes OUT/images/ (folder), OUT/images.bag (ros1) or OUT/images_bag/ "
+    "(ros2), plus OUT/camchain.yaml, OUT/target.yaml, OUT/gimbal.yaml (perturbed initial kinematics: "
+    "+N(0, 0.03 m) on lengths, +N(0, 10 deg) on angles) and OUT/ground_truth.yaml (true kinematics, true "
+    "joint angles in rad per timestamp in ns, true T_ds and T_st per snapshot, 4x4 row-major, metres)."
+)
+
+FLIGHT_SUMMARY = "render a VIO flight (IMU, static and gimbal camera) into a ROS1/ROS2 bag"
+FLIGHT_DESCRIPTION = (
+    "A body flying rounded-rectangle loops in a textured box room with a freely moving 2-joint "
+    "gimbal: /imu0 (200 Hz), /cam0/image_raw (static) and /cam1/image_raw (gimbal) at 20 Hz, truth on "
+    "/ground_truth/pose and /ground_truth/joints; also calibration.yaml (with an imu: section), "
+    "ground_truth.tum and ground_truth_joints.csv."
+)
 
 
 def simulate_calibration_command(args: argparse.Namespace) -> int:
@@ -44,17 +64,8 @@ def simulate_flight_command(args: argparse.Namespace) -> int:
 
 
 def add_calibration_parser(sub: Any, parent: argparse.ArgumentParser) -> None:
-    p = sub.add_parser(
-        "calibration",
-        parents=[parent],
-        help="render a calibration data set of the paper's scenario (images + camchain/target/gimbal + truth)",
-        description="Simulates the paper's 2-DOF gimbal calibration scenario (two 640x480 cameras, fx ~ 460 px, "
-        "mild radial-tangential distortion, board 0.6-1.2 m away, joint angles on a jittered grid over the joint "
-        "ranges) and renders every snapshot's two images through the true camera models, distortion included, "
-        "with Gaussian blur and noise. Writes OUT/images/ (folder), OUT/images.bag (ros1) or OUT/images_bag/ "
-        "(ros2), plus OUT/camchain.yaml, OUT/target.yaml, OUT/gimbal.yaml (perturbed initial kinematics: "
-        "+N(0, 0.03 m) on lengths, +N(0, 10 deg) on angles) and OUT/ground_truth.yaml (true kinematics, true "
-        "joint angles in rad per timestamp in ns, true T_ds and T_st per snapshot, 4x4 row-major, metres).",
+    p = common.add_command(
+        sub, "calibration", parent, CALIBRATION_SUMMARY, CALIBRATION_DESCRIPTION, simulate_calibration_command
     )
     p.add_argument(
         "--target",
@@ -83,19 +94,10 @@ def add_calibration_parser(sub: Any, parent: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--blur", type=float, default=RenderConfig.blur_sigma_px, help="Gaussian blur sigma, pixels (default 0.6)"
     )
-    p.set_defaults(func=simulate_calibration_command)
 
 
 def add_flight_parser(sub: Any, parent: argparse.ArgumentParser) -> None:
-    f = sub.add_parser(
-        "flight",
-        parents=[parent],
-        help="render a VIO flight (IMU, static and gimbal camera) into a ROS1/ROS2 bag",
-        description="A body flying rounded-rectangle loops in a textured box room with a freely moving 2-joint "
-        "gimbal: /imu0 (200 Hz), /cam0/image_raw (static) and /cam1/image_raw (gimbal) at 20 Hz, truth on "
-        "/ground_truth/pose and /ground_truth/joints; also calibration.yaml (with an imu: section), "
-        "ground_truth.tum and ground_truth_joints.csv.",
-    )
+    f = common.add_command(sub, "flight", parent, FLIGHT_SUMMARY, FLIGHT_DESCRIPTION, simulate_flight_command)
     f.add_argument("--out", required=True, help="output folder")
     f.add_argument("--format", default="ros2", choices=["ros1", "ros2"], help="bag format (default ros2)")
     f.add_argument("--duration", type=float, help="one short loop (16 m x 8 m) flown in this many seconds")
@@ -111,7 +113,6 @@ def add_flight_parser(sub: Any, parent: argparse.ArgumentParser) -> None:
         help="moving: sinusoids and +-30 deg slews at up to 60 deg/s per joint (default); locked: held at its mid "
         "position (for scc runs, angles in calibration.yaml flight.joints_locked, rad)",
     )
-    f.set_defaults(func=simulate_flight_command)
 
 
 def add_parser(sub: Any, parent: argparse.ArgumentParser) -> None:

@@ -299,95 +299,44 @@ def vio_command(args: argparse.Namespace) -> int:
 
 def add_parser(sub: Any, parent: argparse.ArgumentParser) -> None:
     """Register ``dcc-fg vio`` on an argparse subparsers object."""
-    v = sub.add_parser(
-        "vio",
-        parents=[parent],
-        help="gimbal-aware visual-inertial odometry over a ROS1/ROS2 bag",
-        description="IMU-preintegrated keyframe fixed-lag smoother (GTSAM) whose states carry the gimbal joint "
-        "angles (dcc), or hold them at known fixed angles (scc), or use the static camera only (mono). Reads "
-        "sensor_msgs/Imu and two image topics; writes OUT/trajectory.tum (TUM: t[s] tx ty tz qx qy qz qw, body = "
-        "IMU frame in a gravity-aligned world), OUT/joint_angles.csv (timestamp_ns,theta_1..theta_L, rad) and "
-        "OUT/summary.json. Starts from standstill (the first 0.5 s of IMU at rest).",
-    )
+    v = common.add_command(
+        sub, "vio", parent, "gimbal-aware visual-inertial odometry over a ROS1/ROS2 bag",
+        "IMU-preintegrated keyframe fixed-lag smoother (GTSAM) whose states carry the gimbal joint angles (dcc), or "
+        "hold them at known fixed angles (scc), or use the static camera only (mono). Reads sensor_msgs/Imu and two "
+        "image topics; writes OUT/trajectory.tum (TUM: t[s] tx ty tz qx qy qz qw, body = IMU frame in a "
+        "gravity-aligned world), OUT/joint_angles.csv (timestamp_ns,theta_1..theta_L, rad) and OUT/summary.json. "
+        "Starts from standstill (the first 0.5 s of IMU at rest).", vio_command,
+    )  # fmt: skip
     v.add_argument("bag", help="ROS1 .bag file or ROS2 bag folder")
-    v.add_argument(
-        "--calibration",
-        required=True,
-        help="calibration.yaml with the chain (joints, tau_s, tau_d, dh), cam0/cam1 intrinsics and, unless "
-        "--imu-yaml is given, an 'imu:' section (T_sI 4x4 IMU -> static camera, noise densities)",
-    )
+    v.add_argument("--calibration", required=True, help="calibration.yaml with the chain (joints, tau_s, tau_d, dh), "
+                   "cam0/cam1 intrinsics and, unless --imu-yaml is given, an 'imu:' section (T_sI 4x4 IMU -> static "
+                   "camera, noise densities)")  # fmt: skip
     v.add_argument("--imu-yaml", help="Kalibr imu.yaml: noise densities (m/s^2/sqrt(Hz), rad/s/sqrt(Hz)), random walks")
     v.add_argument("--camchain", help="Kalibr camchain-imucam.yaml: takes T_sI from cam0.T_cam_imu")
-    add_topic_flags(v)
-    add_smoother_flags(v)
+    add_vio_flags(v)
     v.add_argument("--out", required=True, help="output folder")
     common.add_config_flag(v, "vio")
-    v.set_defaults(func=vio_command)
 
 
-def add_topic_flags(v: argparse.ArgumentParser) -> None:
-    S = common.SUPPRESS
-    v.add_argument("--imu-topic", dest="topics.imu", default=S, help="sensor_msgs/Imu topic (default /imu0)")
-    v.add_argument(
-        "--static-topic", dest="topics.static", default=S, help="static camera image topic (default /cam0/image_raw)"
-    )
-    v.add_argument(
-        "--dynamic-topic", dest="topics.dynamic", default=S, help="gimbal camera image topic (default /cam1/image_raw)"
-    )
-
-
-def add_smoother_flags(v: argparse.ArgumentParser) -> None:
-    S = common.SUPPRESS
-    v.add_argument("--mode", dest="smoother.mode", default=S, choices=["dcc", "scc", "mono"], help="default dcc")
-    v.add_argument(
-        "--initial-joints",
-        dest="smoother.theta_initial",
-        type=lambda t: parse_angles(t, "--initial-joints"),
-        default=S,
-        metavar="RAD",
-        help="dcc: starting guess of the joint angles, e.g. '1.57,0' (rad); by default they are found from the "
-        "first frame's static/gimbal matches",
-    )
-    v.add_argument(
-        "--fixed-joints",
-        dest="smoother.theta_fixed",
-        type=lambda t: parse_angles(t, "--fixed-joints"),
-        default=S,
-        metavar="RAD",
-        help="scc: the locked joint angles, e.g. '1.57,0' (rad)",
-    )
-    v.add_argument(
-        "--pixel-sigma", dest="run.pixel_sigma", type=float, default=S, help="feature noise, px (1 sigma; default 1)"
-    )
-    v.add_argument(
-        "--keyframe-every",
-        dest="smoother.keyframe_every",
-        type=int,
-        default=S,
-        help="every n-th frame is a keyframe (default 3)",
-    )
-    v.add_argument("--lag", dest="smoother.lag", type=float, default=S, help="smoother window, seconds (default 1.5)")
-    v.add_argument(
-        "--sync-tolerance",
-        dest="run.sync_tolerance_ms",
-        type=float,
-        default=S,
-        metavar="MS",
-        help="image pairing tolerance, ms (default 5)",
-    )
-    v.add_argument(
-        "--no-dynamic-rejection",
-        dest="run.dynamic_rejection",
-        action="store_false",
-        default=S,
-        help="keep every gimbal-camera track (skip the second stage of the two-stage outlier handling)",
-    )
-    v.add_argument(
-        "--frontend",
-        dest="run.frontend_worker",
-        default=S,
-        choices=["auto", "inline", "process"],
-        help="run the feature tracking inline, or in a second process on another core so it overlaps "
-        "the smoother; auto (default) takes the second process when two or more cores are usable. "
-        "benchmarks/bench_vio.py measures both on your machine",
-    )
+def add_vio_flags(v: argparse.ArgumentParser) -> None:
+    """The flags that set VioConfig options (topics, smoother, run)."""
+    opt = common.add_option
+    opt(v, "--imu-topic", "topics.imu", help="sensor_msgs/Imu topic (default /imu0)")
+    opt(v, "--static-topic", "topics.static", help="static camera image topic (default /cam0/image_raw)")
+    opt(v, "--dynamic-topic", "topics.dynamic", help="gimbal camera image topic (default /cam1/image_raw)")
+    opt(v, "--mode", "smoother.mode", choices=["dcc", "scc", "mono"], help="default dcc")
+    opt(v, "--initial-joints", "smoother.theta_initial", type=lambda t: parse_angles(t, "--initial-joints"),
+        metavar="RAD", help="dcc: starting guess of the joint angles, e.g. '1.57,0' (rad); by default they are found "
+        "from the first frame's static/gimbal matches")  # fmt: skip
+    opt(v, "--fixed-joints", "smoother.theta_fixed", type=lambda t: parse_angles(t, "--fixed-joints"), metavar="RAD",
+        help="scc: the locked joint angles, e.g. '1.57,0' (rad)")  # fmt: skip
+    opt(v, "--pixel-sigma", "run.pixel_sigma", type=float, help="feature noise, pixels (1 sigma; default 1)")
+    opt(v, "--keyframe-every", "smoother.keyframe_every", type=int, help="every n-th frame is a keyframe (default 3)")
+    opt(v, "--lag", "smoother.lag", type=float, help="smoother window, seconds (default 1.5)")
+    opt(v, "--sync-tolerance", "run.sync_tolerance_ms", type=float, metavar="MS",
+        help="image pairing tolerance, ms (default 5)")  # fmt: skip
+    opt(v, "--no-dynamic-rejection", "run.dynamic_rejection", action="store_false", help="keep every gimbal-camera "
+        "track (skip the second stage of the two-stage outlier handling)")  # fmt: skip
+    opt(v, "--frontend", "run.frontend_worker", choices=["auto", "inline", "process"], help="run the feature tracking "
+        "inline, or in a second process on another core so it overlaps the smoother; auto (default) takes the second "
+        "process when two or more cores are usable. benchmarks/bench_vio.py measures both on your machine")  # fmt: skip

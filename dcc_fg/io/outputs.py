@@ -16,6 +16,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from dcc_fg.util.config import to_plain
+
 
 def write_text_atomic(path: Path, text: str) -> None:
     """Write ``text`` to ``path`` through a temporary file and an atomic rename."""
@@ -32,18 +34,8 @@ def write_text_atomic(path: Path, text: str) -> None:
 
 
 def plain(obj: Any) -> Any:
-    """Convert numpy scalars / arrays inside ``obj`` to plain Python for YAML/JSON (non-finite -> None)."""
-    if isinstance(obj, dict):
-        return {str(k): plain(v) for k, v in obj.items()}
-    if isinstance(obj, list | tuple):
-        return [plain(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return plain(obj.tolist())
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, float) and not np.isfinite(obj):
-        return None
-    return obj
+    """``obj`` as plain Python for YAML/JSON: numpy values, tuples, dataclasses converted, non-finite -> None."""
+    return to_plain(obj, nonfinite_as_none=True)
 
 
 def write_joint_angles_csv(path: Path, timestamps_ns: NDArray[np.int64], thetas: NDArray[np.float64]) -> None:

@@ -31,20 +31,25 @@ class ConfigError(ValueError):
     """A configuration file or value is invalid (the message names the file and key)."""
 
 
-def to_plain(obj: Any) -> Any:
-    """Dataclasses, numpy values, tuples and paths as plain YAML/JSON values (dicts, lists, floats)."""
+def to_plain(obj: Any, nonfinite_as_none: bool = False) -> Any:
+    """Dataclasses, numpy values, tuples and paths as plain YAML/JSON values (dicts, lists, floats).
+
+    ``nonfinite_as_none`` turns NaN and infinities into None (JSON has no NaN).
+    """
     if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
-        return {f.name: to_plain(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
+        return {f.name: to_plain(getattr(obj, f.name), nonfinite_as_none) for f in dataclasses.fields(obj)}
     if isinstance(obj, Mapping):
-        return {str(k): to_plain(v) for k, v in obj.items()}
+        return {str(k): to_plain(v, nonfinite_as_none) for k, v in obj.items()}
     if isinstance(obj, list | tuple):
-        return [to_plain(v) for v in obj]
+        return [to_plain(v, nonfinite_as_none) for v in obj]
     if isinstance(obj, np.ndarray):
-        return to_plain(obj.tolist())
+        return to_plain(obj.tolist(), nonfinite_as_none)
     if isinstance(obj, np.generic):
-        return obj.item()
+        obj = obj.item()
     if isinstance(obj, Path):
         return str(obj)
+    if nonfinite_as_none and isinstance(obj, float) and not np.isfinite(obj):
+        return None
     return obj
 
 
