@@ -23,7 +23,9 @@ from dcc_fg.io.bags import BagImagePairs, decode_image, read_bag_pairs
 from dcc_fg.io.camchain import CamchainEntry
 from dcc_fg.io.folders import FramePair, ImageFolder, read_joints_csv, write_image_folder
 from dcc_fg.io.layout import detect_layout
+from dcc_fg.io.outputs import read_joint_angles_csv, write_joint_angles_csv
 from dcc_fg.io.pairing import check_pairing, nearest_within, pair_timestamps
+from dcc_fg.io.tum import read_tum, write_tum
 from dcc_fg.sources.dataset import load_dataset
 from dcc_fg.sources.detections import read_detection_csv, read_detection_folder, write_detection_csv
 from dcc_fg.targets import TargetGeometry
@@ -145,6 +147,21 @@ def test_image_folder_errors_name_the_file(tmp_path: Path) -> None:
     shutil.rmtree(root / "cam1")
     with pytest.raises(ValueError, match="cam1: folder missing"):
         ImageFolder(root)
+
+
+def test_nanosecond_stamps_stay_integers(tmp_path: Path) -> None:
+    """EuRoC-epoch stamps (~1.4e18 ns) are not multiples of 256 ns: a float64 would round them."""
+    stamps = np.array([1403636580013555456, 1403636580013555457, 1403636580063555583], dtype=np.int64)
+    assert int(float(stamps[1])) != int(stamps[1])  # what a float parse would lose
+    write_joint_angles_csv(tmp_path / "joint_angles.csv", stamps, np.array([[0.1, -0.2], [0.3, 0.4], [0.5, 0.6]]))
+    t, th = read_joint_angles_csv(tmp_path / "joint_angles.csv")
+    assert t.dtype == np.int64 and np.array_equal(t, stamps) and th.shape == (3, 2)
+    write_tum(tmp_path / "traj.tum", stamps, np.tile(np.eye(4), (3, 1, 1)))
+    t_tum, _ = read_tum(tmp_path / "traj.tum")
+    assert np.array_equal(t_tum, stamps)
+    (tmp_path / "joints.csv").write_text("timestamp_ns,theta_1\n" + "".join(f"{s},0.5\n" for s in stamps))
+    t_j, _ = read_joints_csv(tmp_path / "joints.csv")
+    assert np.array_equal(t_j, stamps)
 
 
 def test_joints_csv(tmp_path: Path) -> None:
@@ -277,6 +294,44 @@ def test_truncated_bag(tmp_path: Path, kind: str) -> None:
         f.write_bytes(data[: int(0.7 * len(data))])
     with pytest.raises(ValueError, match=f"{bag.name}: truncated or corrupt bag"):
         list(BagImagePairs(bag, "/cam0/image_raw", "/cam1/image_raw"))
+
+
+def test_rosbags_structural_assert_is_reported_as_corrupt(tmp_path: Path) -> None:
+    """rosbags checks a ROS1 index record's fields with ``assert``: that counts as a corrupt bag."""
+    from rosbags.highlevel import AnyReader
+
+    bag = write_ros1_bag(tmp_path / "rec.bag", frames(2))
+    data = bytearray(bag.read_bytes())
+    k = data.index(b"count=", data.index(b"op=\x04"))  # first index-data record's 'count' field
+    data[k + 2] = ord("x")  # 'count' -> 'coxnt': an unknown field name
+    bad = tmp_path / "bad.bag"
+    bad.write_bytes(bytes(data))
+    with pytest.raises(AssertionError), AnyReader([bad]):  # what rosbags itself raises
+        pass
+    with pytest.raises(ValueError, match="bad.bag: truncated or corrupt bag, cannot open it"):
+        BagImagePairs(bad, "/cam0/image_raw", "/cam1/image_raw")
+
+
+def test_a_bug_is_not_reported_as_a_corrupt_bag(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Only what rosbags raises for bad files becomes "corrupt bag"; a KeyError or an
+    AssertionError of a bug keeps its type and traceback."""
+    from rosbags.highlevel import AnyReader
+
+    bag = write_ros1_bag(tmp_path / "rec.bag", frames(2))
+
+    def broken_deserialize(self, raw, msgtype):  # type: ignore[no-untyped-def]
+        raise KeyError("a bug: no such field")
+
+    monkeypatch.setattr(AnyReader, "deserialize", broken_deserialize)
+    with pytest.raises(KeyError, match="a bug"):
+        BagImagePairs(bag, "/cam0/image_raw", "/cam1/image_raw")
+
+    def failed_assert(self):  # type: ignore[no-untyped-def]
+        raise AssertionError("a bug: an assumption of ours")
+
+    monkeypatch.setattr(AnyReader, "open", failed_assert)
+    with pytest.raises(AssertionError, match="a bug"):
+        BagImagePairs(bag, "/cam0/image_raw", "/cam1/image_raw")
 
 
 def test_bag_timestamps_that_never_pair(tmp_path: Path) -> None:

@@ -16,7 +16,7 @@ stamp is zero).  Joint angles are ``JointState.position`` (radians), in the orde
 ``joint_names`` if given, else as recorded.
 
 Corrupt or truncated bags raise ``ValueError`` naming the bag; only the exceptions that rosbags
-and its storage raise for bad files (:data:`BAG_ERRORS`) are turned into that message, so a
+and its storage raise for bad files (:func:`is_bad_bag_error`) are turned into that message, so a
 programming error still ends in its own traceback.  Writing: :mod:`dcc_fg.io.bag_writer`.
 """
 
@@ -71,6 +71,25 @@ BAG_ERRORS: tuple[type[BaseException], ...] = (
     EOFError,
     OSError,
 )
+
+#: rosbags' own reader code, where an ``assert`` checks the file's structure (e.g. rosbag1's index records).
+_ROSBAGS_READERS = ("/rosbags/rosbag1/", "/rosbags/rosbag2/")
+
+
+def is_bad_bag_error(exc: BaseException) -> bool:
+    """True for an exception that rosbags or its storage raises on a corrupt or truncated bag:
+    one of :data:`BAG_ERRORS`, or an ``AssertionError`` raised inside rosbags' reader code (its
+    structural checks); False for anything else, in particular errors of our own code."""
+    if isinstance(exc, BAG_ERRORS):
+        return True
+    if not isinstance(exc, AssertionError):
+        return False
+    tb = exc.__traceback__
+    while tb is not None and tb.tb_next is not None:
+        tb = tb.tb_next
+    where = Path(tb.tb_frame.f_code.co_filename).as_posix() if tb is not None else ""
+    return any(d in where for d in _ROSBAGS_READERS)
+
 
 _CHANNELS = {"mono8": 1, "8UC1": 1, "mono16": 1, "16UC1": 1, "rgb8": 3, "bgr8": 3, "8UC3": 3, "rgba8": 4, "bgra8": 4}
 _DTYPES = {"mono16": np.uint16, "16UC1": np.uint16}
@@ -162,7 +181,9 @@ def open_bag(path: Path) -> Iterator[AnyReader]:
     reader = bag_reader(path)
     try:
         reader.open()
-    except BAG_ERRORS as exc:
+    except (*BAG_ERRORS, AssertionError) as exc:
+        if not is_bad_bag_error(exc):
+            raise
         raise ValueError(f"{path}: truncated or corrupt bag, cannot open it ({exc})") from None
     try:
         yield reader
@@ -178,7 +199,9 @@ def bag_messages(path: Path, reader: AnyReader, conns: list[Connection]) -> Iter
             item = next(it)
         except StopIteration:
             return
-        except BAG_ERRORS as exc:
+        except (*BAG_ERRORS, AssertionError) as exc:
+            if not is_bad_bag_error(exc):
+                raise
             raise ValueError(f"{path}: truncated or corrupt bag ({type(exc).__name__}: {exc})") from None
         conn, t, raw = item
         try:
