@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
@@ -19,24 +20,31 @@ INTRINSICS_DESCRIPTION = (
 )
 
 
+@dataclass
+class IntrinsicsOptions:
+    """Options of ``dcc-fg intrinsics`` (recorded in the ``--summary`` JSON)."""
+
+    camera: str = "cam0"
+    model: str = "pinhole-radtan"
+    topic: str | None = None
+    every: int = 1
+    max_views: int = 80
+    min_corners: int = 12
+    max_rms: float = 2.0
+
+
 def intrinsics_command(args: argparse.Namespace) -> int:
     if not Path(args.target).is_file():
         raise ValueError(f"{args.target}: target file not found")
-    result = run_intrinsics(
-        args.data,
-        load_target(args.target),
-        camera=args.camera,
-        model=args.model,
-        out=args.out,
-        topic=args.topic,
-        every=args.every,
-        max_views=args.max_views,
-        min_corners=args.min_corners,
-        max_rms=args.max_rms,
+    options = IntrinsicsOptions(
+        args.camera, args.model, args.topic, args.every, args.max_views, args.min_corners, args.max_rms
     )
+    target = load_target(args.target)
+    result = run_intrinsics(args.data, target, out=args.out, progress=common.progress_wanted(args), **asdict(options))
     print(intrinsics_table(result))
     if args.summary:
-        write_json(Path(args.summary), result.summary())
+        provenance = common.record("intrinsics", {"data": args.data, "target": args.target}, options)
+        write_json(Path(args.summary), {**provenance, **result.summary()})
     print(f"wrote {args.out}" + (f", {args.summary}" if args.summary else ""))
     return 0
 
