@@ -32,6 +32,7 @@ import numpy as np
 from dcc_fg.sim.flight_bag import scale_camera
 from dcc_fg.sim.flight_render import WorldRenderer, planes_from_world, render_flight
 from dcc_fg.sim.trajectory import FlightConfig, World, default_static_mount, flight_calibration, simulate_flight
+from dcc_fg.sources.euroc import euroc_calibration, load_euroc
 from dcc_fg.vio.frontend import Frontend, FrontendConfig
 
 EUROC = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "euroc_v1_01_micro" / "MicroEurocDataset"
@@ -111,8 +112,6 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
     out = report("simulated flight", frames, Frontend(cal.static_camera, cal.dynamic_camera, T_ds=cal.T_ds(theta0)))
     out["render_ms"] = render_ms
     if EUROC.is_dir():
-        from dcc_fg.sources.euroc import euroc_calibration, load_euroc
-
         ds = load_euroc(EUROC)
         pairs = dict(ds.images1)
         real = [

@@ -29,7 +29,7 @@ from typing import Any
 import yaml
 
 from dcc_fg.sim.flight_bag import FlightBag, load_flight_calibration, write_flight
-from dcc_fg.sim.trajectory import FlightConfig, locked_gimbal
+from dcc_fg.sim.trajectory import FlightConfig, locked_gimbal, simulate_flight
 from dcc_fg.vio.backend import VioOptions
 from dcc_fg.vio.evaluate import evaluate_trajectory, joint_rmse, load_ground_truth
 from dcc_fg.vio.pipeline import PipelineOptions, run_vio_bag
@@ -45,8 +45,6 @@ def _flight(folder: Path, cfg: FlightConfig, seed: int, moving: bool) -> FlightB
     marker = folder / "bench_settings.json"
     settings = json.dumps({"duration": cfg.duration, "loops": cfg.loops, "seed": seed, "moving": moving})
     if marker.is_file() and marker.read_text() == settings:
-        from dcc_fg.sim.trajectory import simulate_flight
-
         cal, imu = load_flight_calibration(folder / "calibration.yaml")
         joints = None if moving else locked_gimbal()
         truth = simulate_flight(cfg, imu, joints, seed=seed)

@@ -8,13 +8,14 @@ import numpy as np
 import pytest
 from rosbags.rosbag2 import Writer as Rosbag2Writer
 from rosbags.typesys import Stores, get_typestore
+from scipy.spatial.transform import Rotation
 
 from dcc_fg.cli import main
+from dcc_fg.data.vio import ImuConfig, ImuSamples, TrackFrame
 from dcc_fg.io.tum import read_tum, write_tum
 from dcc_fg.sim.trajectory import FlightConfig, default_static_mount, flight_calibration, simulate_flight
 from dcc_fg.vio.backend import VioOptions, VioResult, run_vio, validate_imu, write_vio_outputs
 from dcc_fg.vio.evaluate import GroundTruth, evaluate_output, evaluate_trajectory, joint_rmse, load_ground_truth
-from dcc_fg.data.vio import ImuConfig, ImuSamples, TrackFrame
 
 
 @pytest.fixture(scope="module")
@@ -72,8 +73,6 @@ def test_joint_rmse_interpolates(truth) -> None:
 def _write_gt_bag(path: Path, truth) -> None:
     ts = get_typestore(Stores.ROS2_HUMBLE)
     T = ts.types
-    from scipy.spatial.transform import Rotation
-
     with Rosbag2Writer(path, version=Rosbag2Writer.VERSION_LATEST) as w:
         cp = w.add_connection("/ground_truth/pose", "geometry_msgs/msg/PoseStamped", typestore=ts)
         cj = w.add_connection("/ground_truth/joints", "sensor_msgs/msg/JointState", typestore=ts)

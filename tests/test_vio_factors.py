@@ -9,6 +9,7 @@ import pytest
 from dcc_fg.sim.trajectory import default_static_mount, flight_calibration
 from factors.vio import (
     ChainCache,
+    ProjectionFactory,
     gimbal_camera_pose_factor,
     gimbal_reprojection_factor,
     gimbal_residuals,
@@ -175,8 +176,6 @@ def _check_factor_pose_retract(factor: gtsam.NonlinearFactor, values: gtsam.Valu
 
 
 def test_projection_factory_matches_static_factor() -> None:
-    from factors.vio import ProjectionFactory
-
     values, z, _, T_sI, _ = _scene(5, 3, static=True)
     make = ProjectionFactory(2e-3, T_sI, huber_k=2.0)
     for i in range(3):

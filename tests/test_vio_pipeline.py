@@ -17,6 +17,8 @@ from typing import Any
 import numpy as np
 import pytest
 import yaml
+from rosbags.rosbag2 import Reader, Writer
+from rosbags.typesys import Stores, get_typestore
 
 from dcc_fg.cli import main
 from dcc_fg.sim.flight_bag import FlightBag, load_flight_calibration, write_flight
@@ -125,9 +127,6 @@ def test_bad_input_leaves_no_output(flights: dict[str, FlightBag], tmp_path: Pat
 
 def _copy_without_images(src: Path, dst: Path, t0_ns: int, t1_ns: int) -> None:
     """Copy a ROS2 bag, leaving out the image messages stamped within [t0, t1] (a camera dropout)."""
-    from rosbags.rosbag2 import Reader, Writer
-    from rosbags.typesys import Stores, get_typestore
-
     store = get_typestore(Stores.ROS2_HUMBLE)
     with Reader(src) as reader, Writer(dst, version=Writer.VERSION_LATEST) as writer:
         conns = {c.id: writer.add_connection(c.topic, c.msgtype, typestore=store) for c in reader.connections}

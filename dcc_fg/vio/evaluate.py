@@ -17,14 +17,21 @@ flight simulator writes; topic names are parameters).
 
 from __future__ import annotations
 
+import copy
 import json
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+from evo.core import metrics, sync
+from evo.core.trajectory import PoseTrajectory3D
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
+
+from dcc_fg.io.bags import bag_reader, is_bag, stamp_ns
+from dcc_fg.io.outputs import read_joint_angles_csv, write_json
+from dcc_fg.io.tum import read_tum
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -44,11 +51,9 @@ class GroundTruth:
 
 
 def _read_bag_ground_truth(path: Path, pose_topic: str, joint_topic: str) -> GroundTruth:
-    from dcc_fg.io.bags import _reader, stamp_ns
-
     poses: list[tuple[int, list[float]]] = []
     joints: list[tuple[int, list[float]]] = []
-    with _reader(path) as reader:
+    with bag_reader(path) as reader:
         topics = {c.topic for c in reader.connections}
         if pose_topic not in topics:
             raise ValueError(f"{path}: no ground-truth topic '{pose_topic}' (topics: {', '.join(sorted(topics))})")
@@ -75,9 +80,6 @@ def _read_bag_ground_truth(path: Path, pose_topic: str, joint_topic: str) -> Gro
 
 def load_ground_truth(path: str | Path, pose_topic: str = POSE_TOPIC, joint_topic: str = JOINT_TOPIC) -> GroundTruth:
     """Read a TUM file or a bag (see module docstring)."""
-    from dcc_fg.io.bags import is_bag
-    from dcc_fg.io.tum import read_tum
-
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"{path}: ground truth not found")
@@ -88,8 +90,6 @@ def load_ground_truth(path: str | Path, pose_topic: str = POSE_TOPIC, joint_topi
 
 
 def _trajectory(t_ns: IntArray, T: FloatArray) -> Any:
-    from evo.core.trajectory import PoseTrajectory3D
-
     q = Rotation.from_matrix(T[:, :3, :3]).as_quat()
     return PoseTrajectory3D(
         positions_xyz=T[:, :3, 3].copy(), orientations_quat_wxyz=q[:, [3, 0, 1, 2]], timestamps=t_ns / NS
@@ -101,8 +101,6 @@ def _associate_and_align(
 ) -> tuple[Any, Any, float]:
     """evo trajectories (reference, estimate) associated within ``max_diff`` s, the estimate aligned
     to the reference in place (SE(3), Sim(3) or not at all), and the alignment's scale."""
-    from evo.core import sync
-
     if align not in ("se3", "sim3", "none"):
         raise ValueError(f"alignment '{align}' is not one of se3, sim3, none")
     ref = _trajectory(gt.t_ns, gt.T_WI)
@@ -165,10 +163,6 @@ def evaluate_trajectory(
     rpe_delta: float = 1.0,
 ) -> dict[str, Any]:
     """APE / RPE / normalized errors of an estimated body trajectory (see module docstring)."""
-    import copy
-
-    from evo.core import metrics
-
     ref, est, scale = _associate_and_align(est_t_ns, est_T, gt, align, max_diff)
     ape = metrics.APE(metrics.PoseRelation.translation_part)
     ape.process_data((ref, est))
@@ -243,9 +237,6 @@ def evaluate_output(out_dir: str | Path, ground_truth: str | Path, align: str = 
 
     ``align='auto'`` uses Sim(3) for runs whose ``summary.json`` says mode ``mono``, SE(3) otherwise.
     """
-    from dcc_fg.io.outputs import read_joint_angles_csv, write_json
-    from dcc_fg.io.tum import read_tum
-
     out_dir = Path(out_dir)
     traj = out_dir / "trajectory.tum"
     mode, align = output_mode_and_alignment(out_dir, align)

@@ -46,6 +46,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from dcc_fg.data.vio import TrackFrame
 from dcc_fg.detection import to_gray8
 from dcc_fg.vio.epipolar import (
     depth_segment_distance,
@@ -55,7 +56,6 @@ from dcc_fg.vio.epipolar import (
     sampson_distance,
 )
 from dcc_fg.vio.matching import OrbDescriber, mutual_ratio_matches
-from dcc_fg.data.vio import TrackFrame
 from factors.camera import CameraModel
 from factors.chain import inv_se3
 

@@ -1,6 +1,6 @@
 """Images to trajectory: a recorded bag through the front end and the keyframe smoother (``dcc-fg vio``).
 
-One pass over the bag (:class:`~dcc_fg.io.vio_bag.VioBag` reads the IMU topic first, then decodes
+One pass over the bag (:class:`~dcc_fg.sources.vio_bag.VioBag` reads the IMU topic first, then decodes
 the images one synchronized pair at a time): every frame pair goes through
 :class:`~dcc_fg.vio.frontend.Frontend` (KLT tracks, static RANSAC, static <-> gimbal matching with the
 current T_ds(theta) estimate) and the resulting :class:`~dcc_fg.data.vio.TrackFrame` into
@@ -36,13 +36,13 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from dcc_fg.io.vio_bag import VioBag
+from dcc_fg.data.vio import ImuConfig, ImuSamples, TrackFrame
 from dcc_fg.model import GimbalCalibration
+from dcc_fg.sources.vio_bag import VioBag
 from dcc_fg.vio.backend import NS, InitialState, VioOptions, VioResult, VioSmoother, timing_stats
 from dcc_fg.vio.frontend import FrontendConfig, GimbalHint, gimbal_outliers
 from dcc_fg.vio.joint_init import JointFit, fit_joint_angles
-from dcc_fg.data.vio import ImuConfig, TrackFrame
-from dcc_fg.vio.worker import FrontendWorker, WorkerSpec, resolve_mode
+from dcc_fg.vio.worker import FrontendWorker, Tracked, WorkerSpec, resolve_mode
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -77,6 +77,163 @@ class PipelineOptions:
     frontend: FrontendConfig | None = None
 
 
+def check_bag_inputs(calibration: GimbalCalibration, options: VioOptions, topics: BagTopics) -> None:
+    """ValueError unless the calibration has the camera models and the topics the mode needs."""
+    if calibration.static_camera is None:
+        raise ValueError("the calibration has no static camera model (cam0 intrinsics are needed for VIO)")
+    if options.mode == "mono":
+        return
+    if calibration.dynamic_camera is None:
+        raise ValueError(f"mode '{options.mode}' needs the gimbal camera model (cam1 intrinsics)")
+    if topics.dynamic is None:
+        raise ValueError(f"mode '{options.mode}' needs the gimbal camera's image topic")
+
+
+def joint_angle_guess(options: VioOptions, initial: InitialState | None) -> FloatArray | None:
+    """Joint angles (rad) to start from: the locked ones (scc), the initial state's, ``theta_initial``, or None."""
+    if options.mode == "scc":
+        return np.asarray(options.theta_fixed, float)
+    if initial is not None and initial.theta.size:
+        return np.asarray(initial.theta, float)
+    if options.theta_initial is not None:
+        return np.asarray(options.theta_initial, float)
+    return None
+
+
+class SmootherDriver:
+    """Feeds the front end's frames to the smoother: starts it on the first frame (joint angles from
+    that frame's static <-> gimbal pairs in ``dcc``), passes joint-angle measurements while the gimbal
+    camera sees few landmarks, pushes each keyframe's joint angles to the front end and runs stage
+    two of the gimbal outlier handling (module docstring). Times in ns, angles in rad."""
+
+    def __init__(
+        self,
+        imu: ImuSamples,
+        imu_config: ImuConfig,
+        calibration: GimbalCalibration,
+        options: VioOptions,
+        pipeline: PipelineOptions,
+        initial: InitialState | None,
+        guess: FloatArray | None,
+        worker: FrontendWorker,
+    ) -> None:
+        self.imu, self.imu_config, self.cal = imu, imu_config, calibration
+        self.options, self.pipeline, self.initial, self.worker = options, pipeline, initial, worker
+        self.guess = guess
+        self.theta0 = self.guess if self.guess is not None else np.zeros(calibration.n_joints)
+        assert calibration.static_camera is not None
+        # the outlier test of stage two runs here, on the worker's snapshots, with the worker's settings
+        self.fe_config = pipeline.frontend or FrontendConfig.for_resolution(*calibration.static_camera.resolution)
+        self.smoother: VioSmoother | None = None
+        self.joint_fit: JointFit | None = None
+        self.t_start_data = 0
+        self.t_prev = 0
+        self.kf_prev: tuple[int, FloatArray] | None = None  # last keyframe's time and joint angles (dcc)
+
+    def feed(self, item: Tracked) -> None:
+        """Process one tracked frame."""
+        frame, t = item.frame, item.frame.timestamp_ns
+        if self.smoother is None:
+            self._start(frame)
+        else:
+            measurement = _theta_measurement(self.smoother, self.cal, frame, self.kf_prev)
+            if self.smoother.add_frame(frame, measurement) and self.options.mode == "dcc":
+                self._keyframe_added(item)
+        self.t_prev = t
+
+    def _start(self, frame: TrackFrame) -> None:
+        """Initialize the smoother at the first frame."""
+        t = frame.timestamp_ns
+        mono = self.options.mode == "mono"
+        if self.options.mode == "dcc":
+            self.joint_fit = _initial_joint_angles(self.cal, frame, self.guess, self.pipeline.fit_initial_joints)
+            self.theta0 = self.joint_fit.theta
+            theta_initial = tuple(float(x) for x in self.theta0)
+            self.options = dataclasses.replace(self.options, theta_initial=theta_initial)
+        start = self.initial
+        if start is not None:
+            start = InitialState(t, start.T_WI, start.v_W, start.acc_bias, start.gyro_bias, self.theta0)
+        self.smoother = VioSmoother(self.imu, self.imu_config, None if mono else self.cal, self.options)
+        self.smoother.initialize(frame, start)
+        self.t_start_data = t
+        if self.options.mode == "dcc":
+            self.kf_prev = (t, self.smoother.theta.copy())
+            self.worker.push_theta(t, self.smoother.theta)
+
+    def _keyframe_added(self, item: Tracked) -> None:
+        """dcc keyframe: push its joint angles to the front end; stage two: the joint angles were
+        estimated with every gimbal track, reject with the updated extrinsics (previous frame:
+        interpolated between the keyframes)."""
+        assert self.kf_prev is not None and self.smoother is not None
+        t = item.frame.timestamp_ns
+        theta_k = self.smoother.theta.copy()
+        self.worker.push_theta(t, theta_k)
+        if item.snapshot is not None and not item.after_gap:
+            t_k0, theta_k0 = self.kf_prev
+            w = (self.t_prev - t_k0) / max(t - t_k0, 1)
+            hint = GimbalHint(self.cal.T_ds(theta_k0 + w * (theta_k - theta_k0)), self.cal.T_ds(theta_k))
+            assert self.cal.dynamic_camera is not None
+            bad = gimbal_outliers(item.snapshot, hint, self.cal.dynamic_camera, self.fe_config)
+            self.worker.drop(item.snapshot.ids[bad])
+        self.kf_prev = (t, theta_k)
+
+
+def frontend_spec(
+    bag: str | Path,
+    calibration: GimbalCalibration,
+    options: VioOptions,
+    topics: BagTopics,
+    pipeline: PipelineOptions,
+    theta0: FloatArray,
+    t_range: tuple[int, int],
+) -> WorkerSpec:
+    """What the front-end worker needs: bag, topics (no gimbal topic in ``mono``), calibration,
+    starting joint angles (rad) and the time range (ns) of frames to track."""
+    mono = options.mode == "mono"
+    return WorkerSpec(
+        str(bag),
+        topics.imu,
+        topics.static,
+        None if mono else topics.dynamic,
+        pipeline.tolerance_ns,
+        calibration,
+        pipeline.frontend,
+        tuple(float(x) for x in theta0),
+        t_range,
+        snapshots=options.mode == "dcc" and pipeline.reject_dynamic,
+    )
+
+
+def run_statistics(
+    bag: str | Path, topics: BagTopics, vb: VioBag, worker: FrontendWorker, driver: SmootherDriver
+) -> dict[str, Any]:
+    """Run statistics of :func:`run_vio_bag`: inputs, gaps, front-end counters, initial joint angles."""
+    joint_fit, cal = driver.joint_fit, driver.cal
+    mono = driver.options.mode == "mono"
+    return {
+        "bag": str(bag),
+        "topics": {"imu": topics.imu, "static": topics.static, "dynamic": None if mono else topics.dynamic},
+        "frame_pairs_in_bag": len(vb),
+        "frames_outside_imu": worker.counters["skipped"],
+        "image_gaps": len(vb.image_gaps),
+        "imu_gaps": len(vb.imu_gaps),
+        "imu_samples_dropped": vb.imu_check.non_finite + vb.imu_check.out_of_order,
+        "frontend_resets": worker.counters["resets"],
+        "frontend_worker": worker.mode,
+        "frontend_process_cpu_s": worker.counters["cpu_s"] if worker.mode == "process" else None,
+        "initial_joint_angles": None
+        if joint_fit is None
+        else {
+            "theta_rad": joint_fit.theta,
+            "sampson_rms_px": joint_fit.rms * float(cal.dynamic_camera.intrinsics[0]),  # type: ignore[union-attr]
+            "inlier_pairs": joint_fit.inliers,
+            "pairs": joint_fit.pairs,
+        },
+        "dynamic_tracks_rejected": worker.counters["dynamic_rejected"],
+        "frontend": worker.counters["stats"],
+    }
+
+
 def run_vio_bag(
     bag: str | Path,
     calibration: GimbalCalibration,
@@ -107,116 +264,32 @@ def run_vio_bag(
     """
     topics = topics or BagTopics()
     pipeline = pipeline or PipelineOptions()
-    if calibration.static_camera is None:
-        raise ValueError("the calibration has no static camera model (cam0 intrinsics are needed for VIO)")
+    check_bag_inputs(calibration, options, topics)
     mono = options.mode == "mono"
-    if not mono and calibration.dynamic_camera is None:
-        raise ValueError(f"mode '{options.mode}' needs the gimbal camera model (cam1 intrinsics)")
-    if not mono and topics.dynamic is None:
-        raise ValueError(f"mode '{options.mode}' needs the gimbal camera's image topic")
     t_wall = time.perf_counter()
     vb = VioBag(bag, topics.imu, topics.static, None if mono else topics.dynamic, tolerance_ns=pipeline.tolerance_ns)
-    L = calibration.n_joints
-    guess: FloatArray | None = None
-    if options.mode == "scc":
-        guess = np.asarray(options.theta_fixed, float)
-    elif initial is not None and initial.theta.size:
-        guess = np.asarray(initial.theta, float)
-    elif options.theta_initial is not None:
-        guess = np.asarray(options.theta_initial, float)
-    theta0 = guess if guess is not None else np.zeros(L)
     t_first, t_last = int(vb.imu.t_ns[0]), int(vb.imu.t_ns[-1])
     t_min = t_first if initial is None else max(t_first, int(initial.t_ns))
-    spec = WorkerSpec(
-        str(bag),
-        topics.imu,
-        topics.static,
-        None if mono else topics.dynamic,
-        pipeline.tolerance_ns,
-        calibration,
-        pipeline.frontend,
-        tuple(float(x) for x in theta0),
-        (t_min, t_last),
-        snapshots=options.mode == "dcc" and pipeline.reject_dynamic,
-    )
-    worker_mode = resolve_mode(pipeline.worker)
-    worker = FrontendWorker(spec, worker_mode)
-    # the outlier test of stage two runs here, on the worker's snapshots, with the worker's settings
-    fe_config = pipeline.frontend or FrontendConfig.for_resolution(*calibration.static_camera.resolution)
-    smoother: VioSmoother | None = None
-    joint_fit: JointFit | None = None
+    guess = joint_angle_guess(options, initial)
+    theta0 = guess if guess is not None else np.zeros(calibration.n_joints)
+    spec = frontend_spec(bag, calibration, options, topics, pipeline, theta0, (t_min, t_last))
+    worker = FrontendWorker(spec, resolve_mode(pipeline.worker))
+    driver = SmootherDriver(vb.imu, imu_config, calibration, options, pipeline, initial, guess, worker)
     n_total = len(vb)
-    done = 0
-    t_start_data = 0
-    t_prev = 0
-    kf_prev: tuple[int, FloatArray] | None = None  # last keyframe's time and joint angles (dcc)
     try:
         for item in worker:
-            done = item.index + 1
-            frame, t = item.frame, item.frame.timestamp_ns
-            if smoother is None:
-                if options.mode == "dcc":
-                    joint_fit = _initial_joint_angles(calibration, frame, guess, pipeline.fit_initial_joints)
-                    theta0 = joint_fit.theta
-                    options = dataclasses.replace(options, theta_initial=tuple(float(x) for x in theta0))
-                start = initial
-                if start is not None:
-                    start = InitialState(t, start.T_WI, start.v_W, start.acc_bias, start.gyro_bias, theta0)
-                smoother = VioSmoother(vb.imu, imu_config, None if mono else calibration, options)
-                smoother.initialize(frame, start)
-                t_start_data = t
-                if options.mode == "dcc":
-                    kf_prev = (t, smoother.theta.copy())
-                    worker.push_theta(t, smoother.theta)
-            elif smoother.add_frame(frame, _theta_measurement(smoother, calibration, frame, kf_prev)) and (
-                options.mode == "dcc"
-            ):
-                assert kf_prev is not None
-                theta_k = smoother.theta.copy()
-                worker.push_theta(t, theta_k)
-                if item.snapshot is not None and not item.after_gap:
-                    # stage two: the joint angles were estimated with every gimbal track; reject with
-                    # the updated extrinsics (previous frame: interpolated between the keyframes)
-                    t_k0, theta_k0 = kf_prev
-                    w = (t_prev - t_k0) / max(t - t_k0, 1)
-                    hint = GimbalHint(calibration.T_ds(theta_k0 + w * (theta_k - theta_k0)), calibration.T_ds(theta_k))
-                    assert calibration.dynamic_camera is not None
-                    bad = gimbal_outliers(item.snapshot, hint, calibration.dynamic_camera, fe_config)
-                    worker.drop(item.snapshot.ids[bad])
-                kf_prev = (t, theta_k)
-            t_prev = t
+            driver.feed(item)
             if progress is not None:
-                progress(done, n_total, time.perf_counter() - t_wall, (t - t_start_data) / NS)
+                data_s = (item.frame.timestamp_ns - driver.t_start_data) / NS
+                progress(item.index + 1, n_total, time.perf_counter() - t_wall, data_s)
     finally:
         worker.close()
-    if smoother is None:
+    if driver.smoother is None:
         raise ValueError(f"{bag}: no camera frame lies within the IMU time span of topic {topics.imu}")
-    result = smoother.result()
+    result = driver.smoother.result()
     duration = (int(result.timestamps_ns[-1]) - int(result.timestamps_ns[0])) / NS
     result.stats.update(timing_stats(time.perf_counter() - t_wall, duration, worker.counters["processed"]))
-    run = {
-        "bag": str(bag),
-        "topics": {"imu": topics.imu, "static": topics.static, "dynamic": None if mono else topics.dynamic},
-        "frame_pairs_in_bag": n_total,
-        "frames_outside_imu": worker.counters["skipped"],
-        "image_gaps": len(vb.image_gaps),
-        "imu_gaps": len(vb.imu_gaps),
-        "imu_samples_dropped": vb.imu_check.non_finite + vb.imu_check.out_of_order,
-        "frontend_resets": worker.counters["resets"],
-        "frontend_worker": worker_mode,
-        "frontend_process_cpu_s": worker.counters["cpu_s"] if worker_mode == "process" else None,
-        "initial_joint_angles": None
-        if joint_fit is None
-        else {
-            "theta_rad": joint_fit.theta,
-            "sampson_rms_px": joint_fit.rms * float(calibration.dynamic_camera.intrinsics[0]),  # type: ignore[union-attr]
-            "inlier_pairs": joint_fit.inliers,
-            "pairs": joint_fit.pairs,
-        },
-        "dynamic_tracks_rejected": worker.counters["dynamic_rejected"],
-        "frontend": worker.counters["stats"],
-    }
-    return result, run
+    return result, run_statistics(bag, topics, vb, worker, driver)
 
 
 def _shared_pairs(frame: TrackFrame) -> tuple[FloatArray, FloatArray]:

@@ -2,12 +2,12 @@
 
 The smoother (GTSAM) holds the GIL through its updates, so a thread cannot overlap the front end
 with it; a child process can (a fresh interpreter, ``python -m dcc_fg.vio.worker``, talking
-length-prefixed pickles over its stdin/stdout). The child opens the bag itself (:class:`~dcc_fg.io.vio_bag.VioBag`),
-decodes and tracks every frame pair (:class:`~dcc_fg.vio.frontend.Frontend`) and sends the tracks
-to the parent; the parent sends back the joint angles of each new keyframe (the front end's
-T_ds(theta) guess for the static <-> gimbal matching) and the ids of gimbal tracks to drop (the
-second stage of the gimbal outlier handling). Both arrive one or two frames late, which only
-delays when a rejected track stops being tracked.
+length-prefixed pickles over its stdin/stdout). The child opens the bag itself
+(:class:`~dcc_fg.sources.vio_bag.VioBag`), decodes and tracks every frame pair
+(:class:`~dcc_fg.vio.frontend.Frontend`) and sends the tracks to the parent; the parent sends back
+the joint angles of each new keyframe (the front end's T_ds(theta) guess for the static <-> gimbal
+matching) and the ids of gimbal tracks to drop (the second stage of the gimbal outlier handling).
+Both arrive one or two frames late, which only delays when a rejected track stops being tracked.
 
 Both modes have the same interface (:class:`FrontendWorker`): iterate for :class:`Tracked`
 frames, :meth:`~FrontendWorker.push_theta`, :meth:`~FrontendWorker.drop`, and after the
@@ -30,13 +30,14 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from dcc_fg.io.vio_bag import VioBag
-from dcc_fg.model import GimbalCalibration
-from dcc_fg.vio.frontend import DynamicSnapshot, Frontend, FrontendConfig
 from dcc_fg.data.vio import TrackFrame
+from dcc_fg.model import GimbalCalibration
+from dcc_fg.sources.vio_bag import VioBag
+from dcc_fg.vio.frontend import DynamicSnapshot, Frontend, FrontendConfig
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -185,8 +186,6 @@ def child_main() -> None:
     """Entry of the front-end process (``python -m dcc_fg.vio.worker``): the spec, then control
     messages on stdin; :class:`Tracked` items and a final ``("end", counters)`` on stdout."""
     logging.disable(logging.WARNING)  # the parent has read the same bag and reported its problems
-    import cv2
-
     cv2.setNumThreads(1)  # one core for the front end, the other for the smoother
     inp, out = sys.stdin.buffer, sys.stdout.buffer
     sys.stdout = sys.stderr  # nothing else may write to the data stream

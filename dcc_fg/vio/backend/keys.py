@@ -1,0 +1,20 @@
+"""GTSAM keys of the smoother's variables (``gtsam.symbol_shorthand``; lower-case characters).
+
+Per keyframe k: ``pose_key(k)`` = x(k) Pose3 ``T_WI``; ``velocity_key(k)`` = v(k) velocity in W
+(m/s); ``bias_key(k)`` = b(k) ``imuBias.ConstantBias``; ``theta_key(k)`` = t(k) joint angles
+(Vector L, rad; ``dcc`` mode); ``camera_key(k)`` = c(k) Pose3 ``T_Wd`` of the gimbal camera
+(``dcc`` with ``gimbal_factor='camera_pose'``). Per landmark n: ``landmark_key(n)`` = l(n) Point3 in W.
+"""
+
+from __future__ import annotations
+
+from gtsam.symbol_shorthand import B, C, L, T, V, X
+
+pose_key = X
+velocity_key = V
+bias_key = B
+theta_key = T
+camera_key = C
+landmark_key = L
+
+__all__ = ["bias_key", "camera_key", "landmark_key", "pose_key", "theta_key", "velocity_key"]

@@ -1,0 +1,211 @@
+"""Landmark management: track bookkeeping, triangulation and landmark quality checks.
+
+Tracks arrive as :class:`~dcc_fg.data.vio.TrackFrame` ids (one id space across both cameras) with
+undistorted normalized coordinates. A track that is not yet a landmark is buffered as
+(keyframe, camera 0 static / 1 gimbal, xy) observations; once it spans ``min_track_keyframes``
+keyframes it is triangulated (linear DLT) and kept if the point is finite, within depth limits, in
+front of every camera, reprojects within ``triangulation_gate`` sigmas and has
+``min_parallax_deg`` of parallax. Landmarks are Point3 in W (m); a landmark is forgotten once its
+last observation leaves the window. Camera poses ``T_Wc`` map camera points into W.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import gtsam
+import numpy as np
+
+from dcc_fg.data.vio import TrackFrame
+from dcc_fg.vio.backend.keys import landmark_key
+from dcc_fg.vio.backend.options import FloatArray, VioOptions
+
+Observation = tuple[int, int, FloatArray]  # (keyframe, camera 0 static / 1 gimbal, normalized xy)
+
+
+def validate_frames(frames: list[TrackFrame], source: str = "tracks") -> None:
+    """Frames must be time-ordered with matching id/coordinate counts and finite coordinates."""
+    if not frames:
+        raise ValueError(f"{source}: no camera frames")
+    last = None
+    for i, f in enumerate(frames):
+        if last is not None and f.timestamp_ns <= last:
+            raise ValueError(f"{source}: frame {i} timestamp {f.timestamp_ns} is not after {last}")
+        last = f.timestamp_ns
+        for cam, ids, xy in (("static", f.static_ids, f.static_xy), ("dynamic", f.dynamic_ids, f.dynamic_xy)):
+            if xy.shape != (ids.shape[0], 2):
+                raise ValueError(f"{source}: frame {i} {cam}: {ids.shape[0]} ids but xy has shape {xy.shape}")
+            if not np.all(np.isfinite(xy)):
+                raise ValueError(f"{source}: frame {i} {cam}: non-finite coordinates")
+
+
+def triangulate(T_Wc: FloatArray, xy: FloatArray) -> FloatArray:
+    """Linear (DLT) triangulation of one point from camera poses T_Wc (M, 4, 4) and normalized xy (M, 2)."""
+    R_cW = np.transpose(T_Wc[:, :3, :3], (0, 2, 1))
+    P = np.concatenate([R_cW, -R_cW @ T_Wc[:, :3, 3:4]], axis=2)  # (M, 3, 4) = [R_cW | t_cW]
+    A = np.concatenate([xy[:, :1] * P[:, 2] - P[:, 0], xy[:, 1:2] * P[:, 2] - P[:, 1]], axis=0)
+    _, _, vt = np.linalg.svd(A)
+    h = vt[-1]
+    if abs(h[3]) < 1e-12:
+        return np.full(3, np.nan)
+    return h[:3] / h[3]
+
+
+def landmark_is_good(p: FloatArray, T_Wc: FloatArray, xy: FloatArray, options: VioOptions) -> bool:
+    """Quality checks of a triangulated point ``p`` (W) seen at ``xy`` (M, 2) from ``T_Wc`` (M, 4, 4):
+    finite; 0.2 m <= distance <= ``max_depth``; depth > 0.1 m in every camera; reprojection error
+    within ``triangulation_gate * sigma``; largest angle between the rays >= ``min_parallax_deg``."""
+    o = options
+    if not np.all(np.isfinite(p)):
+        return False
+    centres = T_Wc[:, :3, 3]
+    rays = p - centres
+    dist = np.linalg.norm(rays, axis=1)
+    if np.any(dist > o.max_depth) or np.any(dist < 0.2):
+        return False
+    p_c = np.einsum("nji,nj->ni", T_Wc[:, :3, :3], rays)
+    if np.any(p_c[:, 2] <= 0.1):
+        return False
+    if np.max(np.linalg.norm(p_c[:, :2] / p_c[:, 2:3] - xy, axis=1)) > o.triangulation_gate * o.sigma:
+        return False
+    u = rays / dist[:, None]
+    cosang = np.clip(u @ u.T, -1.0, 1.0)
+    return bool(np.degrees(np.arccos(cosang.min())) >= o.min_parallax_deg)
+
+
+def outside_gate(T_cW: FloatArray, p_W: FloatArray, z: FloatArray, max_error: float) -> bool:
+    """True if landmark ``p_W`` is behind camera ``T_cW`` (W -> camera) or projects farther than
+    ``max_error`` (normalized units) from the observation ``z``."""
+    p_c = T_cW[:3, :3] @ p_W + T_cW[:3, 3]
+    return bool(p_c[2] <= 0 or np.linalg.norm(p_c[:2] / p_c[2] - z) > max_error)
+
+
+def triangulate_track(
+    obs: list[Observation], camera_pose: Callable[[int, int], FloatArray], options: VioOptions
+) -> tuple[FloatArray, bool]:
+    """Triangulate a track from its static observations, else from both cameras; (point, good).
+
+    Static observations do not depend on the (uncertain) joint angles, so they are preferred; both
+    cameras together give a stereo baseline (what gives landmarks while the body stands still).
+    ``camera_pose(k, cam)`` is ``T_Wc`` of camera ``cam`` at keyframe ``k``.
+    """
+    p, ok = np.full(3, np.nan), False
+    static_obs = [ob for ob in obs if ob[1] == 0]
+    for use in (static_obs, obs):
+        if len({(ob[0], ob[1]) for ob in use}) < 2 or (use is obs and len(use) == len(static_obs)):
+            continue
+        T_Wc = np.array([camera_pose(kk, cam) for kk, cam, _ in use])
+        xy = np.array([z for _, _, z in use])
+        p = triangulate(T_Wc, xy)
+        ok = landmark_is_good(p, T_Wc, xy, options)
+        if ok:
+            break
+    return p, ok
+
+
+@dataclass
+class Track:
+    """Buffered observations of a not-yet-triangulated landmark: (keyframe, camera 0/1, xy)."""
+
+    obs: list[Observation] = field(default_factory=list)
+
+
+@dataclass
+class NewLandmark:
+    """A landmark made from a track: its index, position in W (m) and the track's observations."""
+
+    index: int
+    p_W: FloatArray
+    obs: list[Observation]
+
+
+class LandmarkMap:
+    """Tracks waiting for triangulation and the landmarks in the window.
+
+    ``active`` maps track id -> landmark index, ``position`` landmark index -> Point3 in W,
+    ``last_seen_ns`` landmark index -> time of its newest observation; ``count`` landmarks made.
+    """
+
+    def __init__(self) -> None:
+        self.tracks: dict[int, Track] = {}
+        self.active: dict[int, int] = {}
+        self.position: dict[int, FloatArray] = {}
+        self.last_seen_ns: dict[int, int] = {}
+        self.count = 0
+
+    def clear(self) -> None:
+        """Forget every landmark and buffered track (the landmark count continues)."""
+        self.active.clear()
+        self.position.clear()
+        self.tracks.clear()
+
+    def buffer(self, track_id: int, k: int, cam: int, z: FloatArray) -> None:
+        """Remember an observation of a track that is not a landmark yet."""
+        self.tracks.setdefault(track_id, Track()).obs.append((k, cam, z))
+
+    def add(self, track_id: int, p_W: FloatArray, t_ns: int) -> int:
+        """Make track ``track_id`` landmark number :attr:`count` at ``p_W``; returns its index."""
+        lm = self.count
+        self.count += 1
+        self.active[track_id] = lm
+        self.position[lm] = p_W
+        self.last_seen_ns[lm] = t_ns
+        return lm
+
+    def triangulate_ready(
+        self,
+        k: int,
+        t_ns: int,
+        keyframe_times: dict[int, int],
+        window_start_ns: int,
+        camera_pose: Callable[[int, int], FloatArray],
+        options: VioOptions,
+    ) -> list[NewLandmark]:
+        """Landmarks from the tracks seen in keyframe ``k`` (at ``t_ns``) that are ready.
+
+        Observations of keyframes before ``window_start_ns`` are dropped first; a track that ended
+        is dropped if it can never become ready, one that never triangulates well after
+        ``3 * min_track_keyframes`` keyframes is given up; at most ``max_new_landmarks`` are made.
+        """
+        o = options
+        made: list[NewLandmark] = []
+        memo: dict[tuple[int, int], FloatArray] = {}  # camera poses of the window's keyframes
+
+        def pose(kk: int, cam: int) -> FloatArray:
+            if (kk, cam) not in memo:
+                memo[(kk, cam)] = camera_pose(kk, cam)
+            return memo[(kk, cam)]
+
+        for tid in list(self.tracks):
+            tr = self.tracks[tid]
+            tr.obs = [ob for ob in tr.obs if keyframe_times[ob[0]] >= window_start_ns]
+            if not tr.obs:
+                del self.tracks[tid]
+                continue
+            kfs = {ob[0] for ob in tr.obs}
+            if tr.obs[-1][0] != k:
+                # not seen in this keyframe: the track ended; drop it if it can never become ready
+                if len(kfs) < o.min_track_keyframes:
+                    del self.tracks[tid]
+                continue
+            if len(kfs) < o.min_track_keyframes or len(made) >= o.max_new_landmarks:
+                continue
+            p, ok = triangulate_track(tr.obs, pose, o)
+            if not ok:
+                if len(kfs) > 3 * o.min_track_keyframes:
+                    del self.tracks[tid]  # never converges: give up on this track
+                continue
+            made.append(NewLandmark(self.add(tid, p, t_ns), p, tr.obs))
+            del self.tracks[tid]
+        return made
+
+    def refresh(self, estimate: gtsam.Values, cutoff_ns: int) -> None:
+        """Positions from the smoother's estimate; forget landmarks that left it or were last seen
+        before ``cutoff_ns``."""
+        for tid, lm in list(self.active.items()):
+            if estimate.exists(landmark_key(lm)):
+                self.position[lm] = estimate.atPoint3(landmark_key(lm))
+            if self.last_seen_ns[lm] < cutoff_ns or not estimate.exists(landmark_key(lm)):
+                del self.active[tid]
+                self.position.pop(lm, None)

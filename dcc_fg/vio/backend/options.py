@@ -1,0 +1,102 @@
+"""Settings, initial state and result of the keyframe smoother (plain dataclasses, loadable from YAML).
+
+Frames: ``T_WI`` maps points from the body/IMU frame I into the world W (gravity along -z);
+velocities ``v_W`` in W (m/s); accelerometer biases in m/s^2, gyroscope biases in rad/s; joint
+angles in rad; times in ns (:data:`NS` per second). See ``docs/architecture.md``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+NS = 1_000_000_000
+MODES = ("dcc", "scc", "mono")
+
+
+@dataclass(frozen=True)
+class VioOptions:
+    """Smoother settings.
+
+    ``sigma`` is the standard deviation of a normalized image coordinate (pixel sigma / focal
+    length); ``robust_k`` the Huber threshold in sigmas; ``theta_random_walk`` the joint-angle
+    random walk in rad/sqrt(s); ``theta_fixed`` the locked joint angles of ``scc`` mode;
+    ``theta_initial`` the joint-angle guess of a ``dcc`` run initialized from standstill;
+    ``min_gimbal_landmarks`` and ``theta_measurement_inflation``: when and how strongly a direct
+    joint-angle measurement is used (:meth:`~dcc_fg.vio.backend.smoother.VioSmoother.add_frame`).
+    """
+
+    mode: str = "dcc"
+    keyframe_every: int = 2
+    lag: float = 1.5
+    sigma: float = 1.0 / 460.0
+    robust_k: float = 2.0
+    theta_random_walk: float = 1.0
+    theta_prior_sigma: float = 0.1
+    theta_fixed: tuple[float, ...] | None = None
+    theta_initial: tuple[float, ...] | None = None
+    min_track_keyframes: int = 3
+    min_parallax_deg: float = 1.0
+    max_depth: float = 60.0
+    triangulation_gate: float = 4.0
+    observation_gate: float = 30.0
+    max_new_landmarks: int = 150
+    standstill_window: float = 0.5
+    prior_position_sigma: float = 1e-3
+    prior_rotation_sigma: float = 1e-3
+    prior_velocity_sigma: float = 0.05
+    prior_acc_bias_sigma: float = 0.1
+    prior_gyro_bias_sigma: float = 0.01
+    smoother: str = "incremental"
+    gimbal_factor: str = "camera_pose"
+    landmark_prior_sigma: float = 100.0
+    zupt_threshold: float = 0.5 / 460.0
+    zupt_min_tracks: int = 8
+    zupt_velocity_sigma: float = 0.01
+    zupt_pose_sigma: float = 1e-3
+    recovery_position_sigma: float = 0.01
+    recovery_rotation_sigma: float = 0.01
+    camera_pose_sigma: float = 1e-4
+    relinearize_threshold: float = 0.01
+    extra_iterations: int = 0
+    min_gimbal_landmarks: int = 10
+    theta_measurement_inflation: float = 3.0
+
+    def __post_init__(self) -> None:
+        if self.mode not in MODES:
+            raise ValueError(f"mode '{self.mode}' is not one of {', '.join(MODES)}")
+        if self.smoother not in ("incremental", "batch"):
+            raise ValueError(f"smoother '{self.smoother}' is not one of incremental, batch")
+        if self.keyframe_every < 1 or self.lag <= 0 or self.sigma <= 0:
+            raise ValueError("keyframe_every >= 1, lag > 0 and sigma > 0 are required")
+
+
+@dataclass(frozen=True)
+class InitialState:
+    """State at time ``t_ns``: ``T_WI`` (4x4), ``v_W`` (m/s), biases, joint angles (rad)."""
+
+    t_ns: int
+    T_WI: FloatArray
+    v_W: FloatArray
+    acc_bias: FloatArray = field(default_factory=lambda: np.zeros(3))
+    gyro_bias: FloatArray = field(default_factory=lambda: np.zeros(3))
+    theta: FloatArray = field(default_factory=lambda: np.zeros(0))
+
+
+@dataclass
+class VioResult:
+    """Per-keyframe estimates (the last estimate of each keyframe before it left the window)."""
+
+    timestamps_ns: IntArray
+    T_WI: FloatArray
+    v_W: FloatArray
+    acc_bias: FloatArray
+    gyro_bias: FloatArray
+    theta: FloatArray
+    mode: str
+    stats: dict[str, Any]

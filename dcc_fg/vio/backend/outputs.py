@@ -1,0 +1,30 @@
+"""Files of a VIO run: ``trajectory.tum`` (body/IMU frame ``T_WI``), ``joint_angles.csv`` and ``summary.json``."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from dcc_fg.io.outputs import write_joint_angles_csv, write_json
+from dcc_fg.io.tum import write_tum
+from dcc_fg.vio.backend.options import VioResult
+
+
+def write_vio_outputs(out_dir: str | Path, result: VioResult, extra: dict[str, Any] | None = None) -> None:
+    """``OUT/trajectory.tum`` (body/IMU frame), ``OUT/joint_angles.csv`` (dcc/scc) and ``OUT/summary.json``."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    write_tum(out / "trajectory.tum", result.timestamps_ns, result.T_WI)
+    if result.mode != "mono" and result.theta.shape[1] > 0:
+        write_joint_angles_csv(out / "joint_angles.csv", result.timestamps_ns, result.theta)
+    summary = {
+        "mode": result.mode,
+        "keyframes": int(result.timestamps_ns.size),
+        "start_ns": int(result.timestamps_ns[0]) if result.timestamps_ns.size else None,
+        "end_ns": int(result.timestamps_ns[-1]) if result.timestamps_ns.size else None,
+        "final_acc_bias": result.acc_bias[-1] if result.timestamps_ns.size else None,
+        "final_gyro_bias": result.gyro_bias[-1] if result.timestamps_ns.size else None,
+        **result.stats,
+        **(extra or {}),
+    }
+    write_json(out / "summary.json", summary)

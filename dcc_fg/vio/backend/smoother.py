@@ -1,0 +1,360 @@
+"""The keyframe smoother: feeds frames through IMU propagation, joint angles, landmarks and the window.
+
+:class:`VioSmoother` orchestrates the pieces of :mod:`dcc_fg.vio.backend` (package docstring): per
+keyframe it preintegrates the IMU from the previous keyframe (:mod:`.imu`), fits the joint angles
+(:mod:`.joints`, ``dcc``), adds zero-velocity factors at standstill (:mod:`.zupt`), adds the
+observations of known landmarks and triangulates ready tracks (:mod:`.landmarks`, factors from
+:mod:`.cameras`) and updates the fixed-lag window (:mod:`.window`), restarting it after a failure.
+Estimates are kept per keyframe as :class:`~.state.KeyframeState`. ``T_WI`` maps body/IMU points into
+W (gravity along -z); times in ns, angles in rad (``docs/architecture.md``).
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+import gtsam
+import numpy as np
+
+from dcc_fg.data.vio import ImuConfig, ImuSamples, TrackFrame
+from dcc_fg.model import GimbalCalibration
+from dcc_fg.vio.backend.cameras import GIMBAL, STATIC, CameraRig
+from dcc_fg.vio.backend.imu import preintegrate, preintegration_params, standstill_state, validate_imu
+from dcc_fg.vio.backend.joints import fit_joint_angles_to_landmarks, joint_measurement_prior, start_joint_angles
+from dcc_fg.vio.backend.keys import bias_key, landmark_key, pose_key, theta_key, velocity_key
+from dcc_fg.vio.backend.landmarks import LandmarkMap, outside_gate
+from dcc_fg.vio.backend.options import NS, FloatArray, InitialState, VioOptions, VioResult
+from dcc_fg.vio.backend.state import KeyframeState, result_from_states
+from dcc_fg.vio.backend.window import AnchorSigmas, FixedLagWindow, anchor_factors, window_start_ns
+from dcc_fg.vio.backend.zupt import static_tracks_at_rest, zero_velocity_factors
+from factors import chain
+from factors.calibration import RobustLoss
+from factors.vio import joint_random_walk_factor
+
+log = logging.getLogger(__name__)
+
+
+class VioSmoother:
+    """Incremental keyframe smoother; feed frames in time order with :meth:`add_frame`.
+
+    Public state: ``k`` the newest keyframe's index, ``kf_times`` keyframe index -> time (ns),
+    ``estimates`` keyframe index -> :class:`KeyframeState`, ``state``/``bias``/``theta`` the newest
+    keyframe's navigation state, IMU bias and joint angles, ``landmarks`` the
+    :class:`~.landmarks.LandmarkMap`, ``stats`` counters of the run.
+    """
+
+    def __init__(
+        self,
+        imu: ImuSamples,
+        imu_config: ImuConfig,
+        calibration: GimbalCalibration | None,
+        options: VioOptions,
+    ) -> None:
+        validate_imu(imu)
+        self.imu = imu
+        self.cfg = imu_config
+        self.opt = options
+        self.cal = calibration
+        self.L = calibration.n_joints if calibration is not None else 0
+        if options.mode != "mono" and calibration is None:
+            raise ValueError(f"mode '{options.mode}' needs the gimbal calibration")
+        if options.mode == "scc":
+            if options.theta_fixed is None or len(options.theta_fixed) != self.L:
+                raise ValueError(f"scc mode needs theta_fixed with {self.L} joint angles (the locked gimbal)")
+        self.T_sI = np.asarray(imu_config.T_sI, float)
+        self.params = preintegration_params(imu_config)
+        self.robust = RobustLoss("huber", options.robust_k)
+        self.rig = CameraRig(calibration, self.T_sI, options)
+        self.window = FixedLagWindow(options)
+        self.landmarks = LandmarkMap()
+        self.k = -1
+        self.kf_times: dict[int, int] = {}
+        self.estimates: dict[int, KeyframeState] = {}
+        self.state: gtsam.NavState | None = None
+        self.bias = gtsam.imuBias.ConstantBias()
+        self.theta = np.zeros(self.L)
+        self.frame_count = 0
+        self.prev_static: dict[int, FloatArray] = {}
+        self.stats: dict[str, Any] = {
+            "keyframes": 0,
+            "landmarks": 0,
+            "static_obs": 0,
+            "dynamic_obs": 0,
+            "gated": 0,
+            "failed_updates": 0,
+        }
+
+    # ------------------------------------------------------------------ helpers
+    def _theta_at(self, k: int, values: gtsam.Values | None = None) -> FloatArray:
+        """Joint angles of keyframe ``k``: fixed (scc), none (mono), else from ``values`` or the estimates."""
+        if self.opt.mode == "scc":
+            return np.asarray(self.opt.theta_fixed, float)
+        if self.opt.mode == "mono":
+            return np.zeros(self.L)
+        if values is not None and values.exists(theta_key(k)):
+            return values.atVector(theta_key(k))
+        return self.estimates[k].theta if k in self.estimates else self.theta
+
+    def _T_Wc(self, k: int, cam: int, theta: FloatArray | None = None) -> FloatArray:
+        """Pose (camera -> W) of camera ``cam`` at keyframe ``k`` from its current estimate."""
+        if cam == GIMBAL and theta is None:
+            theta = self._theta_at(k)
+        return self.rig.T_Wc(self.estimates[k].T_WI, cam, theta)
+
+    def _standstill_initial_state(self, frame: TrackFrame) -> InitialState:
+        initial = standstill_state(self.imu, frame.timestamp_ns, self.opt.standstill_window, self.cfg.gravity, self.L)
+        if self.opt.mode != "dcc":
+            return initial
+        if self.opt.theta_initial is None or len(self.opt.theta_initial) != self.L:
+            raise ValueError(f"dcc mode from standstill needs theta_initial ({self.L} joint angles, rad)")
+        return InitialState(
+            initial.t_ns,
+            initial.T_WI,
+            initial.v_W,
+            initial.acc_bias,
+            initial.gyro_bias,
+            np.asarray(self.opt.theta_initial, float),
+        )
+
+    # ------------------------------------------------------------------ main loop
+    def initialize(self, frame: TrackFrame, initial: InitialState | None) -> None:
+        """Start at ``frame`` from ``initial`` (at the frame's time) or from standstill."""
+        if initial is None:
+            initial = self._standstill_initial_state(frame)
+        theta0 = start_joint_angles(initial, self.opt, self.L)
+        if initial.t_ns != frame.timestamp_ns:
+            raise ValueError("the initial state must be at the time of the first frame")
+        self.k = 0
+        t = frame.timestamp_ns
+        self.kf_times[0] = t
+        pose = gtsam.Pose3(np.asarray(initial.T_WI, float))
+        v = np.asarray(initial.v_W, float)
+        self.bias = gtsam.imuBias.ConstantBias(
+            np.asarray(initial.acc_bias, float), np.asarray(initial.gyro_bias, float)
+        )
+        self.theta = theta0 if self.L else np.zeros(0)
+        dcc = self.opt.mode == "dcc"
+        sigmas = AnchorSigmas.first_keyframe(self.opt)
+        graph, values, stamps = anchor_factors(0, t, pose, v, self.bias, self.theta if dcc else None, sigmas)
+        if dcc:
+            self.rig.add_gimbal_camera_pose(0, t, pose, self.theta, graph, values, stamps)
+        self.state = gtsam.NavState(pose, v)
+        self.estimates[0] = KeyframeState(
+            t, pose.matrix(), v, self.bias.accelerometer(), self.bias.gyroscope(), self.theta.copy()
+        )
+        self._observe(0, frame, graph, values, stamps)
+        self.prev_static = dict(zip(frame.static_ids.tolist(), frame.static_xy, strict=True))
+        self._update(graph, values, stamps)
+
+    def next_is_keyframe(self) -> bool:
+        """True if the next :meth:`add_frame` call will make a keyframe."""
+        return self.frame_count % self.opt.keyframe_every == 0
+
+    def gimbal_landmarks(self, frame: TrackFrame) -> int:
+        """How many of the frame's gimbal-camera tracks are mapped landmarks."""
+        return sum(int(tid) in self.landmarks.active for tid in frame.dynamic_ids)
+
+    def add_frame(self, frame: TrackFrame, theta_measurement: tuple[FloatArray, FloatArray] | None = None) -> bool:
+        """Process one frame; returns True if it became a keyframe.
+
+        ``theta_measurement`` = (theta (L,) rad, covariance (L, L) rad^2): a direct measurement of
+        the joint angles, e.g. from the frame's static <-> gimbal epipolar geometry
+        (:func:`dcc_fg.vio.joint_init.fit_joint_angles`). It is used (``dcc`` mode) only while the
+        gimbal camera sees fewer than ``min_gimbal_landmarks`` mapped landmarks, i.e. when the
+        reprojection factors cannot determine the angles yet (start-up at standstill, after a gap),
+        as the starting value and a prior with the covariance inflated by ``theta_measurement_inflation``.
+        """
+        self.frame_count += 1
+        if (self.frame_count - 1) % self.opt.keyframe_every:
+            return False
+        k_prev, k = self.k, self.k + 1
+        graph, values, stamps, pred = self._propagate(k_prev, k, frame.timestamp_ns)
+        if self.opt.mode == "dcc":
+            self._add_joint_angles(k_prev, k, frame, pred.pose(), theta_measurement, graph, values, stamps)
+        self._zero_velocity(k_prev, k, frame, graph)
+        self._observe(k, frame, graph, values, stamps)
+        self._update(graph, values, stamps)
+        return True
+
+    def _propagate(
+        self, k_prev: int, k: int, t: int
+    ) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values, dict[int, int], gtsam.NavState]:
+        """New keyframe ``k`` at ``t`` (ns): the IMU factor from ``k_prev``, the predicted state as
+        its starting value and first estimate; returns the new graph, values, key times, prediction."""
+        t_prev = self.kf_times[k_prev]
+        if t - t_prev > 2 * NS:
+            log.warning(
+                "gap of %.2f s between keyframes at t_ns %d: IMU-only propagation across it", (t - t_prev) / NS, t
+            )
+        pim = preintegrate(self.params, self.bias, self.imu, t_prev, t)
+        assert self.state is not None
+        pred = pim.predict(self.state, self.bias)
+        graph = gtsam.NonlinearFactorGraph()
+        values = gtsam.Values()
+        graph.add(
+            gtsam.CombinedImuFactor(
+                pose_key(k_prev), velocity_key(k_prev), pose_key(k), velocity_key(k), bias_key(k_prev), bias_key(k), pim
+            )
+        )
+        values.insert(pose_key(k), pred.pose())
+        values.insert(velocity_key(k), pred.velocity())
+        values.insert(bias_key(k), self.bias)
+        stamps = {pose_key(k): t, velocity_key(k): t, bias_key(k): t}
+        self.k = k
+        self.kf_times[k] = t
+        self.estimates[k] = KeyframeState.from_prediction(t, pred, self.bias, self.theta.copy())
+        return graph, values, stamps, pred
+
+    def _add_joint_angles(
+        self,
+        k_prev: int,
+        k: int,
+        frame: TrackFrame,
+        pose: gtsam.Pose3,
+        theta_measurement: tuple[FloatArray, FloatArray] | None,
+        graph: gtsam.NonlinearFactorGraph,
+        values: gtsam.Values,
+        stamps: dict[int, int],
+    ) -> None:
+        """dcc: keyframe ``k``'s joint angles, started from the fit to known landmarks (or from a
+        direct measurement while few are seen), with the random walk from ``k_prev``."""
+        t = self.kf_times[k]
+        dt = (t - self.kf_times[k_prev]) / NS
+        theta0 = self._fit_theta(frame, pose.matrix(), self.theta, self.opt.theta_random_walk * np.sqrt(dt))
+        if theta_measurement is not None and self.gimbal_landmarks(frame) < self.opt.min_gimbal_landmarks:
+            prior = joint_measurement_prior(
+                theta_key(k), theta_measurement, self.L, self.opt.theta_measurement_inflation
+            )
+            if prior is not None:
+                theta0 = prior[0]
+                graph.add(prior[1])
+                self.stats["theta_measurements"] = self.stats.get("theta_measurements", 0) + 1
+        values.insert(theta_key(k), theta0)
+        stamps[theta_key(k)] = t
+        sigma = max(self.opt.theta_random_walk * np.sqrt(dt), 1e-6)
+        graph.add(joint_random_walk_factor(theta_key(k_prev), theta_key(k), self.L, sigma))
+        self.estimates[k] = self.estimates[k].with_theta(theta0)
+        self.rig.add_gimbal_camera_pose(k, t, pose, theta0, graph, values, stamps)
+
+    def _fit_theta(self, frame: TrackFrame, T_WI: FloatArray, theta0: FloatArray, prior_sigma: float) -> FloatArray:
+        """Stage one of the gimbal outlier handling (:func:`~.joints.fit_joint_angles_to_landmarks`)
+        against the frame's gimbal observations of known landmarks, pose from the IMU."""
+        assert self.cal is not None
+        lms = self.landmarks
+        idx = [i for i, tid in enumerate(frame.dynamic_ids) if int(tid) in lms.active]
+        p_W = np.array([lms.position[lms.active[int(frame.dynamic_ids[i])]] for i in idx]).reshape(-1, 3)
+        z = frame.dynamic_xy[idx]
+        return fit_joint_angles_to_landmarks(
+            T_WI, p_W, z, theta0, prior_sigma, self.cal.kin, self.T_sI, self.opt.sigma, self.robust
+        )
+
+    def _zero_velocity(self, k_prev: int, k: int, frame: TrackFrame, graph: gtsam.NonlinearFactorGraph) -> None:
+        """Zero-velocity factors when the static-camera tracks stood still (:mod:`.zupt`)."""
+        prev = self.prev_static
+        cur = dict(zip(frame.static_ids.tolist(), frame.static_xy, strict=True))
+        self.prev_static = cur
+        if not static_tracks_at_rest(prev, cur, self.opt):
+            return
+        self.stats["zero_velocity"] = self.stats.get("zero_velocity", 0) + 1
+        for factor in zero_velocity_factors(k_prev, k, self.opt):
+            graph.add(factor)
+
+    def _observe(
+        self, k: int, frame: TrackFrame, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, stamps: dict[int, int]
+    ) -> None:
+        """Add factors of known landmarks (gated), buffer the rest, triangulate ready tracks."""
+        t = frame.timestamp_ns
+        o = self.opt
+        lms = self.landmarks
+        theta_k = self._theta_at(k, values)
+        cams = [(STATIC, frame.static_ids, frame.static_xy)]
+        if o.mode != "mono":
+            cams.append((GIMBAL, frame.dynamic_ids, frame.dynamic_xy))
+        for cam, ids, xy in cams:
+            if ids.size == 0:
+                continue
+            T_cW = chain.inv_se3(self._T_Wc(k, cam, theta_k))
+            for tid, z in zip(ids.tolist(), xy, strict=True):
+                lm = lms.active.get(tid)
+                if lm is None:
+                    lms.buffer(tid, k, cam, z)
+                    continue
+                if outside_gate(T_cW, lms.position[lm], z, o.observation_gate * o.sigma):
+                    self.stats["gated"] += 1
+                    continue
+                graph.add(self._factor(k, cam, lm, z))
+                lms.last_seen_ns[lm] = t
+                stamps[landmark_key(lm)] = t
+        self._triangulate_ready(k, t, graph, values, stamps)
+
+    def _factor(self, k: int, cam: int, lm: int, z: FloatArray) -> gtsam.NonlinearFactor:
+        """Reprojection factor of landmark ``lm`` seen by camera ``cam`` at keyframe k (counted)."""
+        self.stats["static_obs" if cam == STATIC else "dynamic_obs"] += 1
+        return self.rig.observation_factor(k, cam, lm, z)
+
+    def _triangulate_ready(
+        self, k: int, t: int, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, stamps: dict[int, int]
+    ) -> None:
+        """New landmarks from ready tracks: value, a very weak prior (keeps a landmark determined
+        if all its projections fail cheirality) and the factors of every buffered observation."""
+        start = window_start_ns(t, self.kf_times[k - 1] if k >= 1 else None, self.opt.lag)
+        made = self.landmarks.triangulate_ready(k, t, self.kf_times, start, self._T_Wc, self.opt)
+        noise = gtsam.noiseModel.Isotropic.Sigma(3, self.opt.landmark_prior_sigma)
+        for new in made:
+            self.stats["landmarks"] += 1
+            key = landmark_key(new.index)
+            values.insert(key, new.p_W)
+            graph.add(gtsam.PriorFactorPoint3(key, new.p_W, noise))
+            stamps[key] = t
+            for kk, cam, z in new.obs:
+                graph.add(self._factor(kk, cam, new.index, z))
+
+    def _update(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, stamps: dict[int, int]) -> None:
+        """Update the window (restart it after a failure), then refresh estimates and landmarks."""
+        error = self.window.update(graph, values, stamps)
+        if error is not None:  # indeterminant system etc.: log, restart from the IMU prediction
+            self.stats["failed_updates"] += 1
+            log.warning(
+                "smoother update failed at keyframe %d (%s); restarting the window from the IMU prediction",
+                self.k,
+                error,
+            )
+            self._restart(values)
+        est = self.window.estimate()
+        for kk, t in self.kf_times.items():
+            if est.exists(pose_key(kk)):
+                self.estimates[kk] = KeyframeState.from_values(est, kk, t, self._theta_at(kk))
+        k = self.k
+        self.state = gtsam.NavState(est.atPose3(pose_key(k)), est.atVector(velocity_key(k)))
+        self.bias = est.atConstantBias(bias_key(k))
+        if self.opt.mode == "dcc":
+            self.theta = est.atVector(theta_key(k))
+        self.landmarks.refresh(est, self.kf_times[k] - int(self.opt.lag * NS))
+        self.stats["keyframes"] = k + 1
+
+    def _restart(self, values: gtsam.Values) -> None:
+        """Recovery after a failed update: a fresh window anchored at the newest keyframe's
+        predicted state (moderate priors), with every landmark and buffered track dropped."""
+        k = self.k
+        t = self.kf_times[k]
+        self.landmarks.clear()
+        pose = values.atPose3(pose_key(k))
+        dcc = self.opt.mode == "dcc"
+        theta = values.atVector(theta_key(k)) if dcc else None
+        graph, new, stamps = anchor_factors(
+            k,
+            t,
+            pose,
+            values.atVector(velocity_key(k)),
+            values.atConstantBias(bias_key(k)),
+            theta,
+            AnchorSigmas.recovery(self.opt),
+        )
+        if theta is not None:
+            self.rig.add_gimbal_camera_pose(k, t, pose, theta, graph, new, stamps)
+        self.window.restart(graph, new, stamps)
+
+    def result(self) -> VioResult:
+        """Every keyframe's latest estimate, in time order, with the run's counters."""
+        return result_from_states(self.estimates, self.opt.mode, self.stats)

@@ -1,0 +1,97 @@
+"""Landmark management of the smoother on synthetic views: quality checks, gating, track bookkeeping."""
+
+from __future__ import annotations
+
+import gtsam
+import numpy as np
+
+from dcc_fg.vio.backend.keys import landmark_key
+from dcc_fg.vio.backend.landmarks import LandmarkMap, landmark_is_good, outside_gate, triangulate_track
+from dcc_fg.vio.backend.options import VioOptions
+from factors.chain import inv_se3
+
+OPT = VioOptions(mode="mono")
+
+
+def _camera(x: float) -> np.ndarray:
+    """Camera looking along +z of W from (x, 0, 0)."""
+    T = np.eye(4)
+    T[0, 3] = x
+    return T
+
+
+def _project(T_Wc: np.ndarray, p_W: np.ndarray) -> np.ndarray:
+    T_cW = inv_se3(T_Wc)
+    p_c = T_cW[:3, :3] @ p_W + T_cW[:3, 3]
+    return p_c[:2] / p_c[2]
+
+
+def test_quality_checks() -> None:
+    p = np.array([0.2, -0.1, 5.0])
+    T_Wc = np.array([_camera(x) for x in (0.0, 0.2, 0.4)])
+    xy = np.array([_project(T, p) for T in T_Wc])
+    assert landmark_is_good(p, T_Wc, xy, OPT)
+    assert not landmark_is_good(np.full(3, np.nan), T_Wc, xy, OPT)
+    assert not landmark_is_good(p, T_Wc, xy + 10 * OPT.triangulation_gate * OPT.sigma, OPT)  # reprojection
+    far = np.array([0.2, -0.1, 80.0])  # beyond max_depth
+    assert not landmark_is_good(far, T_Wc, np.array([_project(T, far) for T in T_Wc]), OPT)
+    behind = np.array([0.2, -0.1, -5.0])
+    assert not landmark_is_good(behind, T_Wc, np.array([_project(T, behind) for T in T_Wc]), OPT)
+    narrow = np.array([_camera(x) for x in (0.0, 0.01, 0.02)])  # 0.2 deg of parallax
+    assert not landmark_is_good(p, narrow, np.array([_project(T, p) for T in narrow]), OPT)
+
+
+def test_observation_gate() -> None:
+    p = np.array([0.0, 0.0, 4.0])
+    T_cW = inv_se3(_camera(0.0))
+    assert not outside_gate(T_cW, p, np.zeros(2), 0.01)
+    assert outside_gate(T_cW, p, np.array([0.02, 0.0]), 0.01)
+    assert outside_gate(T_cW, -p, np.zeros(2), 0.01)  # behind the camera
+
+
+def test_triangulate_track_prefers_static_and_falls_back_on_both_cameras() -> None:
+    p = np.array([0.3, 0.2, 6.0])
+    poses = {(k, cam): _camera(0.3 * k + 0.25 * cam) for k in range(3) for cam in (0, 1)}
+    obs = [(k, cam, _project(poses[(k, cam)], p)) for k in range(3) for cam in (0, 1)]
+    used: list[tuple[int, int]] = []
+
+    def camera_pose(k: int, cam: int) -> np.ndarray:
+        used.append((k, cam))
+        return poses[(k, cam)]
+
+    q, ok = triangulate_track(obs, camera_pose, OPT)
+    assert ok and np.allclose(q, p, atol=1e-9) and {cam for _, cam in used} == {0}
+    # one keyframe of static observations only: the stereo pair (both cameras) triangulates
+    obs = [(0, 0, _project(poses[(0, 0)], p)), (0, 1, _project(poses[(0, 1)], p))]
+    used.clear()
+    q, ok = triangulate_track(obs, camera_pose, OPT)
+    assert ok and np.allclose(q, p, atol=1e-9) and {cam for _, cam in used} == {0, 1}
+
+
+def test_track_bookkeeping() -> None:
+    """A track seen in three keyframes becomes a landmark; one that ended too short is dropped; old
+    observations leave with the window; refresh forgets landmarks out of the estimate."""
+    p = np.array([0.3, 0.2, 6.0])
+    poses = {k: _camera(0.3 * k) for k in range(4)}
+    times = {k: 100 * k for k in range(4)}
+    lms = LandmarkMap()
+    for k in range(3):
+        lms.buffer(7, k, 0, _project(poses[k], p))
+    lms.buffer(8, 0, 0, np.zeros(2))  # ends after one keyframe
+
+    def camera_pose(k: int, cam: int) -> np.ndarray:
+        return poses[k]
+
+    made = lms.triangulate_ready(2, times[2], times, 0, camera_pose, OPT)
+    assert [m.index for m in made] == [0] and np.allclose(made[0].p_W, p, atol=1e-9) and len(made[0].obs) == 3
+    assert lms.active == {7: 0} and lms.last_seen_ns[0] == 200 and lms.tracks == {}  # 8 ended too short
+    lms.buffer(10, 0, 0, np.zeros(2))
+    lms.buffer(10, 3, 0, np.zeros(2))
+    assert lms.triangulate_ready(3, times[3], times, 50, camera_pose, OPT) == []
+    assert [ob[0] for ob in lms.tracks[10].obs] == [3]  # keyframe 0 left the window
+    est = gtsam.Values()
+    est.insert(landmark_key(0), p + 0.01)
+    lms.refresh(est, 0)
+    np.testing.assert_allclose(lms.position[0], p + 0.01)
+    lms.refresh(est, 300)  # last seen before the cutoff
+    assert lms.active == {} and lms.position == {} and lms.count == 1
