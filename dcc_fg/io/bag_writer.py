@@ -232,6 +232,28 @@ def remove_path(path: Path) -> None:
         path.unlink()
 
 
+def write_frame_pair_bag(
+    path: str | Path,
+    frames: Iterable[FramePair],
+    ros: Literal[1, 2],
+    storage: Literal["sqlite3", "mcap"] = "sqlite3",
+    topics: tuple[str, str, str] = ("/cam0/image_raw", "/cam1/image_raw", "/gimbal/joint_states"),
+    compressed: bool = False,
+) -> Path:
+    """Write calibration image pairs to a new bag (FileExistsError if ``path`` exists).
+
+    Each frame gives one image message per camera topic (record time = header stamp: the
+    frame's ``timestamp_ns`` for the static image, ``dynamic_timestamp_ns`` or ``timestamp_ns``
+    for the dynamic one) and, if it has joints, a ``JointState`` (names ``joint_1..joint_L``) at
+    the static stamp.  ``topics`` are the static, dynamic and joint topics; ``compressed`` writes
+    PNG ``CompressedImage`` messages.
+    """
+    with BagWriter(path, ros, storage, overwrite=False) as bag:
+        for fr in frames:
+            bag.frame_pair(fr, *topics, compressed=compressed)
+    return Path(path)
+
+
 def write_ros1_bag(
     path: str | Path,
     frames: Iterable[FramePair],
@@ -240,17 +262,8 @@ def write_ros1_bag(
     joint_topic: str = "/gimbal/joint_states",
     compressed: bool = False,
 ) -> Path:
-    """Write frames to a new ROS1 bag file (ROS1 Noetic types; FileExistsError if ``path`` exists).
-
-    Each frame gives one image message per camera topic (record time = header stamp: the
-    frame's ``timestamp_ns`` for the static image, ``dynamic_timestamp_ns`` or ``timestamp_ns``
-    for the dynamic one) and, if it has joints, a ``JointState`` (names ``joint_1..joint_L``) at
-    the static stamp.  ``compressed`` writes PNG ``CompressedImage`` messages.
-    """
-    with BagWriter(path, 1, overwrite=False) as bag:
-        for fr in frames:
-            bag.frame_pair(fr, static_topic, dynamic_topic, joint_topic, compressed)
-    return Path(path)
+    """Write frames to a new ROS1 bag file (ROS1 Noetic types), see :func:`write_frame_pair_bag`."""
+    return write_frame_pair_bag(path, frames, 1, "sqlite3", (static_topic, dynamic_topic, joint_topic), compressed)
 
 
 def write_ros2_bag(
@@ -262,11 +275,6 @@ def write_ros2_bag(
     compressed: bool = False,
     storage: Literal["sqlite3", "mcap"] = "sqlite3",
 ) -> Path:
-    """Write frames to a new ROS2 bag folder (Humble types; FileExistsError if ``path`` exists).
-
-    Same messages as :func:`write_ros1_bag`; ``storage`` selects the sqlite3 or mcap plugin.
-    """
-    with BagWriter(path, 2, storage, overwrite=False) as bag:
-        for fr in frames:
-            bag.frame_pair(fr, static_topic, dynamic_topic, joint_topic, compressed)
-    return Path(path)
+    """Write frames to a new ROS2 bag folder (Humble types; ``storage``: sqlite3 or mcap plugin),
+    see :func:`write_frame_pair_bag`."""
+    return write_frame_pair_bag(path, frames, 2, storage, (static_topic, dynamic_topic, joint_topic), compressed)

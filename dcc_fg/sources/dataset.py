@@ -138,6 +138,25 @@ def _bag_topics(cams: _CameraPair, static_topic: str | None, dynamic_topic: str 
     return topics[0], topics[1]
 
 
+def _image_pairs(
+    path: Path,
+    layout: Layout,
+    cams: _CameraPair,
+    topics: tuple[str | None, str | None, str | None],
+    tolerance_ns: int,
+    joint_names: list[str] | None,
+) -> tuple[ImageFolder | BagImagePairs, tuple[str, str]]:
+    """The paired images of an image folder or bag, and how to name the two streams in errors.
+
+    ``topics``: static and dynamic image topic overrides and the joint topic (bags only).
+    """
+    if layout == "image_folder":
+        return ImageFolder(path, tolerance_ns), (str(path / STATIC_DIR), str(path / DYNAMIC_DIR))
+    static_topic, dynamic_topic = _bag_topics(cams, topics[0], topics[1])
+    frames = BagImagePairs(path, static_topic, dynamic_topic, topics[2], tolerance_ns, joint_names)
+    return frames, (f"{path}: topic {static_topic}", f"{path}: topic {dynamic_topic}")
+
+
 def _input_report(
     layout: Layout, pairing: Pairing, snapshots: list[Snapshot], kept: list[Snapshot]
 ) -> dict[str, object]:
@@ -215,25 +234,13 @@ def load_dataset(
     else:
         if geometry is None:
             raise ValueError(f"{path}: a target (Kalibr target.yaml) is needed to detect corners in images")
-        frames: ImageFolder | BagImagePairs
-        if layout == "image_folder":
-            frames = ImageFolder(path, tolerance_ns)
-            where = (str(path / STATIC_DIR), str(path / DYNAMIC_DIR))
-        else:
-            topics = _bag_topics(cams, static_topic, dynamic_topic)
-            frames = BagImagePairs(path, topics[0], topics[1], joint_topic, tolerance_ns, joint_names)
-            where = (f"{path}: topic {topics[0]}", f"{path}: topic {topics[1]}")
-        pairing = frames.pairing
-        snapshots = _detect_frames(
-            frames,
-            len(frames),
-            geometry,
-            cams.entries,
-            cams.names,
-            detector or detect_target,
-            progress,
-            f"detect {path.name}",
+        frames, where = _image_pairs(
+            path, layout, cams, (static_topic, dynamic_topic, joint_topic), tolerance_ns, joint_names
         )
+        pairing = frames.pairing
+        detector = detector or detect_target
+        desc = f"detect {path.name}"
+        snapshots = _detect_frames(frames, len(frames), geometry, cams.entries, cams.names, detector, progress, desc)
     kept = _keep(snapshots, min_common_points, where, geometry)
     if report is not None:
         report.update(_input_report(layout, pairing, snapshots, kept))
