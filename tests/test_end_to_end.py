@@ -90,6 +90,7 @@ def _end_to_end(tmp: Path, target: str, fmt: str, n: int, seed: int, storage: st
     return {"r": r, "summary": summary, "n_used": len(stamps)}
 
 
+@pytest.mark.slow
 def test_chessboard_folder_full_scenario(tmp_path: Path) -> None:
     """81 snapshots, image folder: the paper's calibration set size."""
     res = _end_to_end(tmp_path, "checkerboard", "folder", 81, seed=0)
@@ -97,17 +98,20 @@ def test_chessboard_folder_full_scenario(tmp_path: Path) -> None:
     assert res["summary"]["input"]["unpaired_static"] == 0 and res["summary"]["input"]["rejected"] == 0
 
 
+@pytest.mark.slow
 def test_aprilgrid_folder(tmp_path: Path) -> None:
     res = _end_to_end(tmp_path, "aprilgrid", "folder", 36, seed=1)
     assert res["n_used"] == 36
     assert res["summary"]["reprojection_error_px"]["all"]["count"] == 36 * 2 * 144  # every tag corner found
 
 
+@pytest.mark.slow
 def test_chessboard_ros1_bag(tmp_path: Path) -> None:
     res = _end_to_end(tmp_path, "checkerboard", "ros1", 25, seed=2)
     assert res["n_used"] == 25 and res["summary"]["input"]["layout"] == "ros1_bag"
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("storage", ["mcap"])
 def test_aprilgrid_ros2_bag(tmp_path: Path, storage: str) -> None:
     res = _end_to_end(tmp_path, "aprilgrid", "ros2", 25, seed=3, storage=storage)
