@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 import dcc_fg.calibrate as calibrate_module
+import dcc_fg.calibration_graph as calibration_graph
 from dcc_fg import load_calibration
 from dcc_fg.auto_init import auto_initialize
 from dcc_fg.calibrate import CalibrationOptions, calibrate, initial_problem
@@ -151,7 +152,10 @@ def test_validation_set_and_yaml_round_trip(tmp_path, demo_sim, demo_result) -> 
     np.testing.assert_array_equal(back.observable, demo_result.calibration.observable)
 
 
+@pytest.mark.slow
 def test_robust_loss_rejects_outliers(demo_sim) -> None:
+    """Three 25 px outliers per dynamic view in 30 snapshots: a Cauchy loss keeps the T_ds rotation
+    error near the noise floor (~100 s: the plain solve's pose-level start restarts 16 times)."""
     data = demo_sim.calibration_set
     rng = np.random.default_rng(5)
     snaps = []
@@ -228,12 +232,10 @@ def test_gauge_on_reference_snapshots_is_the_same_solution(monkeypatch: pytest.M
     """Above GAUGE_REFERENCE_SNAPSHOTS snapshots the mean prior on theta_L covers an evenly spread
     subset: a different gauge, so the gauge-invariant results (T_ds per snapshot and its covariance,
     joint angles up to one constant offset of theta_L) equal those of the prior over all snapshots."""
-    import dcc_fg.calibrate as cal_mod
-
     sim = simulate_calibration(4, SceneConfig(n_calibration=150, n_validation=1))
-    assert len(cal_mod.gauge_reference_snapshots(150)) == cal_mod.GAUGE_REFERENCE_SNAPSHOTS
+    assert len(calibration_graph.gauge_reference_snapshots(150)) == calibration_graph.GAUGE_REFERENCE_SNAPSHOTS
     subset = calibrate(sim.calibration_set, sim.initial)
-    monkeypatch.setattr(cal_mod, "GAUGE_REFERENCE_SNAPSHOTS", 10_000)
+    monkeypatch.setattr(calibration_graph, "GAUGE_REFERENCE_SNAPSHOTS", 10_000)
     every = calibrate(sim.calibration_set, sim.initial)
     e_sub = evaluate_against_truth(subset, sim.truth, sim.joints_calibration)
     e_all = evaluate_against_truth(every, sim.truth, sim.joints_calibration)
