@@ -17,9 +17,10 @@ initial values, which removes exactly the unobservable directions:
 * encoderless, L >= 1: ``tau_s.rz`` and ``tau_s.tz`` (they absorb a constant offset of
   theta_1 and the DH ``d_1``), ``d_L, a_L, alpha_L`` (absorbed by ``tau_d``), and the mean of
   theta_L over the reference snapshots (a prior on the mean: the offset of theta_L is absorbed by
-  ``tau_d``). The reference snapshots are all of them up to ``GAUGE_REFERENCE_SNAPSHOTS``, else that
-  many spread evenly over the data set: the prior links its snapshots into one dense block of the
-  elimination, whose cost would otherwise grow with the cube of the number of snapshots;
+  ``tau_d``). The reference snapshots are all of them up to
+  ``dcc_fg.calibration_graph.GAUGE_REFERENCE_SNAPSHOTS``, else that many spread evenly over the data
+  set: the prior links its snapshots into one dense block of the elimination, whose cost would
+  otherwise grow with the cube of the number of snapshots;
 * encoders, L = 1: ``tau_s.rz, tau_s.tz, d_1, a_1, alpha_1``; encoders, L >= 2:
   ``tau_s.tz, d_L, a_L, alpha_L``.
 
