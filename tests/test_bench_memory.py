@@ -29,10 +29,13 @@ from pathlib import Path
 from types import ModuleType
 
 import numpy as np
+import pytest
 
 from dcc_fg.sim.calibration_scene import simulate_calibration
 from dcc_fg.sim.write_dataset import default_target, load_ground_truth, scene_config
 from dcc_fg.studies.calibration_accuracy import cramer_rao_bound
+
+pytestmark = pytest.mark.slow  # renders bags and runs dcc-fg calibrate in a child process (~45 s)
 
 BENCH = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_memory.py"
 

@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
+import pytest
+
 from benchmarks.bench_vio import main
+
+pytestmark = pytest.mark.slow  # renders and runs short flights through the benchmark (~50 s)
 
 
 def test_bench_vio_runs(capsys) -> None:  # type: ignore[no-untyped-def]

@@ -228,6 +228,7 @@ def test_joint_never_moves_without_kinematics_says_it_cannot_tell_which() -> Non
         auto_initialize(data, 2)
 
 
+@pytest.mark.slow
 def test_gauge_on_reference_snapshots_is_the_same_solution(monkeypatch: pytest.MonkeyPatch) -> None:
     """Above GAUGE_REFERENCE_SNAPSHOTS snapshots the mean prior on theta_L covers an evenly spread
     subset: a different gauge, so the gauge-invariant results (T_ds per snapshot and its covariance,

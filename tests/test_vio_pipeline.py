@@ -28,6 +28,8 @@ from dcc_fg.vio.backend import VioOptions
 from dcc_fg.vio.evaluate import evaluate_output, evaluate_trajectory, joint_rmse, load_ground_truth
 from dcc_fg.vio.pipeline import run_vio_bag
 
+pytestmark = pytest.mark.slow  # renders two 20 s flights and runs the whole VIO on them (~2-3 min)
+
 DURATION = 20.0
 
 

@@ -13,6 +13,8 @@ import pytest
 
 from dcc_fg.studies.vio_study import StudyConfig, run_mode, slew_recovery_errors
 
+pytestmark = pytest.mark.slow  # two 30 s tracks-level VIO runs (~40 s)
+
 CFG = StudyConfig(duration=30.0, density=0.5, pixel_sigma=0.5, seed=0)
 
 
