@@ -65,6 +65,7 @@ def test_three_joint_rotation_ik_inverts_the_chain() -> None:
     np.testing.assert_allclose(out2[:, 1], -th[:, 1], atol=1e-9)
 
 
+@pytest.mark.slow
 def test_two_joint_starts_ranked_on_a_subset_of_many_snapshots() -> None:
     """Above SCREEN_SNAPSHOTS snapshots the L = 2 starts are ranked on a subset; the fit on all of
     them still reaches the optimum of the pose-level fit started from the truth."""

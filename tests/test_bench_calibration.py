@@ -21,6 +21,7 @@ def _load_bench() -> ModuleType:
     return module
 
 
+@pytest.mark.slow
 def test_bench_calibration_small_problem_same_cost() -> None:
     bench = _load_bench()
     out = bench.run(seed=0, snapshots=12, verbose=False)
