@@ -30,6 +30,7 @@ from dcc_fg.plots.output import write_calibration_outputs
 from dcc_fg.report import parameter_table, run_summary_table
 from dcc_fg.sources.dataset import load_dataset
 from dcc_fg.util.config import ConfigError
+from dcc_fg.util.provenance import run_record
 
 log = logging.getLogger(__name__)
 
@@ -243,7 +244,7 @@ def run_calibrate(
     data = load_calibration_data(inputs, inputs.camchain, config.reader, progress, report)
     initial, data = initial_values(inputs, config.init, config.solver.mode, data)
     result = calibrate(data, initial, config.solver)
-    write_calibration_files(out, result, report, common.record("calibrate", inputs.paths(), config), quiet)
+    write_calibration_files(out, result, report, run_record("calibrate", inputs.paths(), config), quiet)
     if config.output.report:
         write_report(out, result, data, quiet)
     return result
@@ -268,7 +269,7 @@ def run_validate(
     report: dict[str, Any] = {}
     data = load_calibration_data(inputs, validation_camchain(inputs, cal), config.reader, progress, report)
     result = calibrate(data, cal, CalibrationOptions(mode="validate"))
-    write_calibration_files(out, result, report, common.record("validate", inputs.paths(), config), quiet)
+    write_calibration_files(out, result, report, run_record("validate", inputs.paths(), config), quiet)
     if config.output.report:
         write_report(out, result, data, quiet)
     return result

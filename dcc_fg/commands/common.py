@@ -10,12 +10,9 @@ from __future__ import annotations
 
 import argparse
 import sys
-from collections.abc import Mapping
-from pathlib import Path
 from typing import Any, TypeVar
 
 from dcc_fg.util.config import apply_overrides, load_yaml_config
-from dcc_fg.util.provenance import run_record
 
 T = TypeVar("T")
 
@@ -77,11 +74,6 @@ def effective_config(args: argparse.Namespace, cls: type[T], command: str) -> T:
     path = getattr(args, "config", None)
     config = load_yaml_config(path, cls, command) if path else cls()
     return apply_overrides(config, option_flags(args))
-
-
-def record(command: str, inputs: Mapping[str, str | Path | None], config: Any) -> dict[str, Any]:
-    """Provenance for ``summary.json`` (version, command line, absolute input paths, options)."""
-    return run_record(command, inputs, config)
 
 
 def progress_wanted(args: argparse.Namespace) -> bool:

@@ -9,6 +9,7 @@ from typing import Any
 
 from dcc_fg.commands import common
 from dcc_fg.demo import run_demo
+from dcc_fg.util.provenance import run_record
 
 
 @dataclass
@@ -30,7 +31,7 @@ DEMO_DESCRIPTION = (
 
 def demo_command(args: argparse.Namespace) -> int:
     options = DemoOptions(args.seed, args.joints, args.report)
-    provenance = common.record("demo", {}, options)
+    provenance = run_record("demo", {}, options)
     run_demo(Path(args.out), seed=options.seed, n_joints=options.joints, report=options.report, provenance=provenance)
     return 0
 

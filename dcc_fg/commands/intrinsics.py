@@ -11,6 +11,7 @@ from dcc_fg.commands import common
 from dcc_fg.intrinsics import intrinsics_table, run_intrinsics
 from dcc_fg.io.outputs import write_json
 from dcc_fg.targets import load_target
+from dcc_fg.util.provenance import run_record
 
 INTRINSICS_SUMMARY = "calibrate one camera's intrinsics and write a Kalibr camchain YAML"
 INTRINSICS_DESCRIPTION = (
@@ -43,7 +44,7 @@ def intrinsics_command(args: argparse.Namespace) -> int:
     result = run_intrinsics(args.data, target, out=args.out, progress=common.progress_wanted(args), **asdict(options))
     print(intrinsics_table(result))
     if args.summary:
-        provenance = common.record("intrinsics", {"data": args.data, "target": args.target}, options)
+        provenance = run_record("intrinsics", {"data": args.data, "target": args.target}, options)
         write_json(Path(args.summary), {**provenance, **result.summary()})
     print(f"wrote {args.out}" + (f", {args.summary}" if args.summary else ""))
     return 0

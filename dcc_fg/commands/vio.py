@@ -27,6 +27,7 @@ from dcc_fg.commands import common
 from dcc_fg.data.vio import ImuConfig, load_imu_config
 from dcc_fg.model import GimbalCalibration, load_calibration
 from dcc_fg.util.config import ConfigError, from_dict, to_plain
+from dcc_fg.util.provenance import run_record
 from dcc_fg.vio.backend import VioOptions, write_vio_outputs
 from dcc_fg.vio.frontend import FrontendConfig
 from dcc_fg.vio.pipeline import BagTopics, PipelineOptions, run_vio_bag
@@ -263,7 +264,7 @@ def run_vio(inputs: VioInputs, out: Path, config: VioConfig, progress: bool = Fa
         result, run = run_vio_bag(bag, cal, imu, options, topics, pipeline, progress=bar if progress else None)
     finally:
         bar.close()
-    provenance = common.record("vio", inputs.paths(), config)
+    provenance = run_record("vio", inputs.paths(), config)
     provenance["options"] = config_text_vio(config)
     provenance["effective_options"] = {"smoother": to_plain(options), "pipeline": to_plain(pipeline)}
     write_vio_outputs(out, result, {**provenance, "calibration": str(cal_path), "run": run})
