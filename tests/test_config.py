@@ -268,3 +268,15 @@ def test_vio_run_reproduced_from_its_summary(tmp_path: Path) -> None:
     assert (second / "trajectory.tum").read_text() == (first / "trajectory.tum").read_text()
     assert (second / "joint_angles.csv").read_text() == (first / "joint_angles.csv").read_text()
     assert json.loads((second / "summary.json").read_text())["effective_options"] == summary["effective_options"]
+
+
+def test_summary_json_as_config_needs_options_of_the_same_command(tmp_path: Path) -> None:
+    old = tmp_path / "old.json"
+    old.write_text(json.dumps({"dcc_fg_version": "0.0.9", "mode": "dcc"}))
+    with pytest.raises(ConfigError, match="a summary.json without 'options'"):
+        load_yaml_config(old, VioConfig, "vio")
+    vio_run = tmp_path / "vio.json"
+    vio_run.write_text(json.dumps({"dcc_fg_version": "0.1.0", "command": "vio", "options": {}}))
+    with pytest.raises(ConfigError, match="configuration for 'dcc-fg vio', not 'dcc-fg calibrate'"):
+        load_yaml_config(vio_run, CalibrateConfig, "calibrate")
+    assert load_yaml_config(vio_run, VioConfig, "vio") == VioConfig()

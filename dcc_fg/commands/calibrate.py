@@ -11,7 +11,6 @@ from __future__ import annotations
 import argparse
 import io
 import json
-import logging
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -31,8 +30,6 @@ from dcc_fg.report import parameter_table, run_summary_table
 from dcc_fg.sources.dataset import load_dataset
 from dcc_fg.util.config import ConfigError
 from dcc_fg.util.provenance import run_record
-
-log = logging.getLogger(__name__)
 
 #: Default of ``--min-common-points``: a snapshot needs this many target points seen by both cameras.
 MIN_COMMON_POINTS = 8

@@ -7,7 +7,6 @@ Without ``--from``, the defaults; with ``--from OUT/summary.json``, the options 
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 from typing import Any
 
@@ -15,7 +14,7 @@ from dcc_fg.commands import common
 from dcc_fg.commands.calibrate import CalibrateConfig, ValidateConfig
 from dcc_fg.commands.vio import VioConfig, check_config, config_text_vio
 from dcc_fg.io.outputs import write_text_atomic
-from dcc_fg.util.config import ConfigError, dump_yaml, from_dict
+from dcc_fg.util.config import dump_yaml, load_yaml_config
 from dcc_fg.util.provenance import package_version
 
 CONFIGS: dict[str, type] = {"calibrate": CalibrateConfig, "validate": ValidateConfig, "vio": VioConfig}
@@ -28,23 +27,9 @@ CONFIG_DESCRIPTION = (
 )
 
 
-def options_of_run(summary: Path, command: str) -> Any:
-    """The options recorded in an earlier run's ``summary.json``."""
-    try:
-        data = json.loads(summary.read_text())
-    except (OSError, json.JSONDecodeError) as exc:
-        raise ConfigError(f"{summary}: cannot read a summary.json ({exc})") from exc
-    if not isinstance(data, dict) or "options" not in data:
-        raise ConfigError(f"{summary}: has no 'options' (written by a dcc-fg older than 0.1.0?)")
-    ran = data.get("command", command)
-    if ran != command:
-        raise ConfigError(f"{summary}: records a 'dcc-fg {ran}' run, not 'dcc-fg {command}'")
-    return from_dict(CONFIGS[command], data["options"], f"{summary}: options")
-
-
 def config_text(command: str, source: Path | None = None) -> str:
     """YAML text of the defaults of ``command`` (or of the run recorded in ``source``)."""
-    config = options_of_run(source, command) if source else CONFIGS[command]()
+    config = load_yaml_config(source, CONFIGS[command], command) if source else CONFIGS[command]()
     origin = f"the options of the run in {source}" if source else "the defaults"
     header = (
         f"dcc-fg {command} options ({origin}; dcc-fg {package_version()}).\n"

@@ -153,7 +153,9 @@ def load_yaml_config(path: str | Path, cls: type[T], command: str) -> T:
         raise ConfigError(f"{p}: malformed YAML: {' '.join(str(exc).split())}") from exc
     if not isinstance(data, dict):
         raise ConfigError(f"{p}: expected a mapping of sections")
-    if "options" in data and "dcc_fg_version" in data:  # a summary.json of an earlier run
+    if "dcc_fg_version" in data:  # a summary.json of an earlier run
+        if not isinstance(data.get("options"), dict):
+            raise ConfigError(f"{p}: a summary.json without 'options' (written by a dcc-fg older than 0.1.0?)")
         data = {"command": data.get("command", command), **data["options"]}
     named = data.pop("command", command)
     if named != command:
