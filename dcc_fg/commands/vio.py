@@ -154,6 +154,8 @@ def config_text_vio(config: VioConfig) -> dict[str, Any]:
     for name in DERIVED_SMOOTHER_FIELDS:
         data["smoother"].pop(name, None)
     return data
+
+
 @dataclass(frozen=True)
 class VioInputs:
     """Input files of a VIO run: the bag, the calibration and, optionally, Kalibr IMU files."""
@@ -240,8 +242,17 @@ class ProgressBar:
             self.bar.close()
 
 
-def run_vio(inputs: VioInputs, out: Path, config: VioConfig, progress: bool = False, quiet: bool = False) -> Any:
-    """Validate the inputs, run the VIO over ``inputs.bag`` and write ``out``; returns the VioResult."""
+def run_vio(
+    inputs: VioInputs,
+    out: Path,
+    config: VioConfig,
+    progress: bool = False,
+    quiet: bool = False,
+    config_source: str = "options",
+) -> Any:
+    """Validate the inputs and options, run the VIO over ``inputs.bag`` and write ``out``; returns the
+    VioResult. ``config_source`` names where the options came from in error messages."""
+    check_config(config, config_source)
     cal_path, bag = Path(inputs.calibration), Path(inputs.bag)
     if not cal_path.is_file():
         raise FileNotFoundError(f"{cal_path}: calibration file not found")
@@ -292,9 +303,9 @@ def print_vio_summary(result: Any, out: Path, n_joints: int) -> None:
 def vio_command(args: argparse.Namespace) -> int:
     """The ``dcc-fg vio`` subcommand (see :func:`add_parser`)."""
     config = common.effective_config(args, VioConfig, "vio")
-    check_config(config, args.config or "command line")
     inputs = VioInputs(args.bag, args.calibration, args.imu_yaml, args.camchain)
-    run_vio(inputs, Path(args.out), config, common.progress_wanted(args), args.quiet)
+    source = args.config or "command line"
+    run_vio(inputs, Path(args.out), config, common.progress_wanted(args), args.quiet, source)
     return 0
 
 
