@@ -28,6 +28,7 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
         "estimators",
         (
             "dcc_fg.calibrate",
+            "dcc_fg.calibration_health",
             "dcc_fg.calibration_graph",
             "dcc_fg.covariance",
             "dcc_fg.init",
