@@ -21,6 +21,43 @@ from numpy.typing import NDArray
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
+#: Standard gravity, m/s^2 (the unit of accelerometer full scales, "16 g").
+STANDARD_GRAVITY = 9.80665
+#: 2000 deg/s in rad/s: the largest full scale of common MEMS gyroscopes.
+GYRO_RANGE_RAD_S = float(np.deg2rad(2000.0))
+#: Fields of :class:`ImuConfig` that must be positive and finite, with their units.
+POSITIVE_FIELDS = {
+    "accelerometer_noise_density": "m/s^2/sqrt(Hz)",
+    "accelerometer_random_walk": "m/s^3/sqrt(Hz)",
+    "gyroscope_noise_density": "rad/s/sqrt(Hz)",
+    "gyroscope_random_walk": "rad/s^2/sqrt(Hz)",
+    "rate_hz": "Hz",
+    "gravity": "m/s^2",
+    "acc_range": "m/s^2",
+    "gyro_range": "rad/s",
+}
+#: Largest deviation of R^T R from the identity accepted for a rotation read from a file (the
+#: 8-12 printed digits of Kalibr / EuRoC YAML files are well inside it).
+ROTATION_TOLERANCE = 1e-5
+
+
+def check_rigid_transform(T: Any, name: str) -> None:
+    """ValueError naming ``name`` unless ``T`` is a finite 4x4 rigid transform (rotation orthonormal
+    within :data:`ROTATION_TOLERANCE` with determinant +1, last row ``0 0 0 1``)."""
+    A = np.asarray(T, dtype=float)
+    if A.shape != (4, 4) or not np.all(np.isfinite(A)):
+        raise ValueError(f"'{name}' must be a finite 4x4 matrix, got shape {A.shape}")
+    if not np.allclose(A[3], [0.0, 0.0, 0.0, 1.0], atol=ROTATION_TOLERANCE):
+        raise ValueError(f"'{name}': the last row must be 0 0 0 1, got {A[3].tolist()}")
+    R = A[:3, :3]
+    err = float(np.abs(R.T @ R - np.eye(3)).max())
+    det = float(np.linalg.det(R))
+    if err > ROTATION_TOLERANCE or det < 0:
+        raise ValueError(
+            f"'{name}': the upper-left 3x3 block is not a rotation (max |R^T R - I| = {err:.2e}, det = {det:.4f}; "
+            "expected an orthonormal matrix with determinant +1)"
+        )
+
 
 @dataclass(frozen=True)
 class ImuSamples:
@@ -64,7 +101,13 @@ class ImuConfig:
     (Kalibr's ``T_cam_imu`` of cam0). Noise densities are continuous-time:
     accelerometer m/s^2/sqrt(Hz), gyroscope rad/s/sqrt(Hz); random walks are
     m/s^3/sqrt(Hz) and rad/s^2/sqrt(Hz). ``gravity`` is the magnitude in m/s^2.
-    Defaults are EuRoC's ADIS16448 figures.
+    Defaults are EuRoC's ADIS16448 figures. ``acc_range`` (m/s^2) and ``gyro_range`` (rad/s) are
+    the sensor's measurement range per axis (default 16 g and 2000 deg/s, the largest full scales
+    of common MEMS IMUs): a sample beyond it cannot be a measurement and is dropped by the readers.
+
+    Every number is checked on construction (finite; positive noise, rate, gravity and ranges;
+    ``T_sI`` a rigid transform: orthonormal rotation with determinant +1, last row 0 0 0 1);
+    :meth:`from_dict` names the source file in the error.
     """
 
     T_sI: FloatArray = field(default_factory=lambda: np.eye(4))
@@ -74,6 +117,15 @@ class ImuConfig:
     gyroscope_random_walk: float = 1.9393e-5
     rate_hz: float = 200.0
     gravity: float = 9.81
+    acc_range: float = 16.0 * STANDARD_GRAVITY
+    gyro_range: float = GYRO_RANGE_RAD_S
+
+    def __post_init__(self) -> None:
+        for name in POSITIVE_FIELDS:
+            value = getattr(self, name)
+            if not (isinstance(value, int | float | np.floating | np.integer) and np.isfinite(value) and value > 0):
+                raise ValueError(f"'{name}' must be a positive finite number ({POSITIVE_FIELDS[name]}), got {value!r}")
+        check_rigid_transform(self.T_sI, "T_sI")
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -84,22 +136,33 @@ class ImuConfig:
             "gyroscope_random_walk": float(self.gyroscope_random_walk),
             "rate_hz": float(self.rate_hz),
             "gravity": float(self.gravity),
+            "acc_range": float(self.acc_range),
+            "gyro_range": float(self.gyro_range),
         }
 
     @staticmethod
     def from_dict(d: dict[str, Any], source: str = "<imu>") -> ImuConfig:
+        if not isinstance(d, dict):
+            raise ValueError(f"{source}: expected a mapping of IMU fields, got {type(d).__name__}")
         kwargs: dict[str, Any] = {}
         for key, value in d.items():
             if key == "T_sI":
-                T = np.asarray(value, dtype=float)
-                if T.shape != (4, 4) or not np.all(np.isfinite(T)):
-                    raise ValueError(f"{source}: 'T_sI' must be a finite 4x4 matrix")
+                try:
+                    T = np.asarray(value, dtype=float)
+                except (TypeError, ValueError):
+                    raise ValueError(f"{source}: 'T_sI' must be a 4x4 matrix of numbers") from None
                 kwargs[key] = T
             elif key in ImuConfig.__dataclass_fields__:
-                kwargs[key] = float(value)
+                try:
+                    kwargs[key] = float(value)
+                except (TypeError, ValueError):
+                    raise ValueError(f"{source}: '{key}' must be a number, got {value!r}") from None
             else:
                 raise ValueError(f"{source}: unknown field '{key}'")
-        return ImuConfig(**kwargs)
+        try:
+            return ImuConfig(**kwargs)
+        except ValueError as err:
+            raise ValueError(f"{source}: {err}") from None
 
 
 def load_imu_config(path: str | Path) -> ImuConfig | None:
@@ -110,3 +173,65 @@ def load_imu_config(path: str | Path) -> ImuConfig | None:
     if "imu" not in d:
         return None
     return ImuConfig.from_dict(d["imu"], f"{p}: imu")
+
+
+def imu_out_of_range(acc: FloatArray, gyro: FloatArray, acc_range: float, gyro_range: float) -> NDArray[np.bool_]:
+    """Per sample: True where any axis is non-finite or beyond the range (m/s^2, rad/s)."""
+    a = np.asarray(acc, float)
+    g = np.asarray(gyro, float)
+    with np.errstate(invalid="ignore"):
+        ok = np.all(np.isfinite(a), axis=1) & np.all(np.isfinite(g), axis=1)
+        ok &= np.all(np.abs(a) <= acc_range, axis=1) & np.all(np.abs(g) <= gyro_range, axis=1)
+    return ~ok
+
+
+#: Lowest IMU rate accepted, Hz: preintegration between keyframes (0.1-0.2 s apart) needs several
+#: samples per interval to follow the motion (EuRoC and common drones: 200-400 Hz).
+MIN_IMU_RATE_HZ = 50.0
+#: The IMU must also be at least this many times faster than the camera.
+MIN_IMU_CAMERA_RATIO = 2.0
+#: Frames before the first or after the last IMU sample beyond this span (s) point to an IMU
+#: clock offset (or an IMU recording started late), not a recorder start-up difference.
+MAX_FRAMES_OUTSIDE_IMU_S = 1.0
+
+
+def measured_rate_hz(t_ns: IntArray) -> float:
+    """Rate (Hz) from the median interval of increasing stamps (nan for fewer than 2)."""
+    t = np.asarray(t_ns, dtype=np.int64)
+    if t.size < 2:
+        return float("nan")
+    return 1e9 / float(np.median(np.diff(t)))
+
+
+def check_imu_against_frames(imu_t_ns: IntArray, frame_t_ns: IntArray, where: str) -> None:
+    """Refuse, before any work, an IMU stream the smoother cannot use with these camera frames.
+
+    * measured IMU rate below :data:`MIN_IMU_RATE_HZ` or below :data:`MIN_IMU_CAMERA_RATIO` times
+      the camera rate (preintegration cannot follow the motion: vision ends up unused);
+    * camera frames extending more than :data:`MAX_FRAMES_OUTSIDE_IMU_S` before the first or after
+      the last IMU sample (an IMU clock offset; the measured offsets are in the message).
+
+    Raises:
+        ValueError: naming ``where`` (file and topic), with the measured numbers.
+    """
+    t = np.asarray(imu_t_ns, dtype=np.int64)
+    f = np.sort(np.asarray(frame_t_ns, dtype=np.int64))
+    rate = measured_rate_hz(t)
+    cam_rate = measured_rate_hz(f)
+    need = max(MIN_IMU_RATE_HZ, MIN_IMU_CAMERA_RATIO * cam_rate if np.isfinite(cam_rate) else 0.0)
+    if not rate >= need:
+        raise ValueError(
+            f"{where}: the IMU rate is {rate:.1f} Hz (median sample interval), too low for preintegration: at least "
+            f"{need:.0f} Hz is needed (>= {MIN_IMU_RATE_HZ:.0f} Hz and >= {MIN_IMU_CAMERA_RATIO:g}x the camera "
+            f"rate {cam_rate:.1f} Hz); check the IMU topic and the driver's rate"
+        )
+    if f.size == 0:
+        return
+    before = (int(t[0]) - int(f[0])) / 1e9
+    after = (int(f[-1]) - int(t[-1])) / 1e9
+    if before > MAX_FRAMES_OUTSIDE_IMU_S or after > MAX_FRAMES_OUTSIDE_IMU_S:
+        raise ValueError(
+            f"{where}: the camera frames start {before:.2f} s before the first IMU sample and end {after:.2f} s "
+            f"after the last (limit {MAX_FRAMES_OUTSIDE_IMU_S:g} s): the IMU clock is probably offset from the "
+            "camera clock (or the IMU was not recorded over the whole bag); check the stamps of both topics"
+        )

@@ -11,8 +11,14 @@ Bad input (each named by bag, topic and time):
 
 * a missing IMU or image topic, or a topic of the wrong message type: ``ValueError`` listing
   the bag's topics;
-* IMU samples with non-finite values: dropped, with a warning (``ValueError`` if more than
-  ``max_bad_imu_fraction`` of them are bad);
+* IMU samples with non-finite values or beyond the sensor's range (``ImuConfig.acc_range``,
+  ``gyro_range``: 16 g and 2000 deg/s by default): dropped, with a warning giving the count
+  (``ValueError`` if more than ``max_bad_imu_fraction`` of them are bad);
+* exact duplicate messages (an IMU sample with the stamp and values of the one before it, an
+  image with the stamp of an earlier image on its topic): dropped with a log line, not counted as bad;
+* an IMU rate too low for preintegration or camera frames far outside the IMU's time span (a
+  clock offset): ``ValueError`` with the measured rate / offsets
+  (:func:`~dcc_fg.data.vio.check_imu_against_frames`);
 * IMU stamps that go backwards or repeat: the offending samples are dropped with a warning
   (``ValueError`` beyond ``max_bad_imu_fraction``);
 * gaps: an IMU gap longer than ``max_imu_gap_s`` or an image gap longer than
@@ -33,7 +39,13 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from dcc_fg.data.vio import ImuSamples
+from dcc_fg.data.vio import (
+    GYRO_RANGE_RAD_S,
+    STANDARD_GRAVITY,
+    ImuSamples,
+    check_imu_against_frames,
+    imu_out_of_range,
+)
 from dcc_fg.detection import to_gray8
 from dcc_fg.io.bags import scan_imu_and_image_stamps, stream_image_groups
 from dcc_fg.io.pairing import DEFAULT_TOLERANCE_NS, pair_timestamps
@@ -62,6 +74,8 @@ class ImuCheck:
 
     n_read: int = 0
     non_finite: int = 0
+    out_of_range: int = 0
+    duplicates: int = 0
     out_of_order: int = 0
     gaps: list[tuple[int, int]] = field(default_factory=list)
 
@@ -73,8 +87,11 @@ def validate_imu(
     where: str,
     max_gap_s: float = 0.05,
     max_bad_fraction: float = 0.01,
+    acc_range: float = 16.0 * STANDARD_GRAVITY,
+    gyro_range: float = GYRO_RANGE_RAD_S,
 ) -> tuple[ImuSamples, ImuCheck]:
-    """Drop non-finite and non-increasing samples (in bag order), find gaps; see the module docstring.
+    """Drop non-finite, out-of-range (``acc_range`` m/s^2, ``gyro_range`` rad/s per axis), exactly
+    duplicated and non-increasing samples (in bag order), find gaps; see the module docstring.
 
     Raises:
         ValueError: naming ``where`` when there are no usable samples or too many bad ones.
@@ -87,7 +104,33 @@ def validate_imu(
     if check.non_finite:
         first = int(t_ns[np.flatnonzero(~finite)[0]])
         log.warning("%s: dropped %d IMU samples with NaN/inf values (first at %d ns)", where, check.non_finite, first)
-    keep = finite.copy()
+    beyond = imu_out_of_range(acc, gyro, acc_range, gyro_range) & finite
+    check.out_of_range = int(beyond.sum())
+    if check.out_of_range:
+        i = int(np.flatnonzero(beyond)[0])
+        log.warning(
+            "%s: dropped %d IMU samples beyond the sensor's range (|acc| > %.1f m/s^2 or |gyro| > %.2f rad/s on an "
+            "axis; first at %d ns: acc %s, gyro %s)",
+            where,
+            check.out_of_range,
+            acc_range,
+            gyro_range,
+            int(t_ns[i]),
+            np.array2string(acc[i], precision=3),
+            np.array2string(gyro[i], precision=3),
+        )
+    keep = finite & ~beyond
+    dup = _exact_duplicates(t_ns, acc, gyro) & keep
+    check.duplicates = int(dup.sum())
+    if check.duplicates:
+        log.warning(
+            "%s: dropped %d exact duplicate IMU messages (first at %d ns)",
+            where,
+            check.duplicates,
+            int(t_ns[np.flatnonzero(dup)[0]]),
+        )
+    keep &= ~dup
+    finite = keep.copy()
     # a sample must be later than every kept sample before it (running maximum of kept stamps)
     kept_t = np.where(finite, t_ns, np.iinfo(np.int64).min)
     prev_max = np.maximum.accumulate(np.concatenate([[np.iinfo(np.int64).min], kept_t[:-1]]))
@@ -103,11 +146,12 @@ def validate_imu(
             int(prev_max[i]),
         )
     keep &= ~backwards
-    bad = check.n_read - int(keep.sum())
-    if bad > max_bad_fraction * check.n_read or keep.sum() < 2:
+    bad = check.n_read - check.duplicates - int(keep.sum())
+    if bad > max_bad_fraction * (check.n_read - check.duplicates) or keep.sum() < 2:
         raise ValueError(
-            f"{where}: {bad} of {check.n_read} IMU samples are unusable "
-            f"({check.non_finite} NaN/inf, {check.out_of_order} with stamps going backwards or repeating)"
+            f"{where}: {bad} of {check.n_read - check.duplicates} IMU samples are unusable "
+            f"({check.non_finite} NaN/inf, {check.out_of_range} beyond the sensor's range, {check.out_of_order} with "
+            "stamps going backwards or repeating)"
         )
     t, a, g = t_ns[keep], acc[keep], gyro[keep]
     dt = np.diff(t)
@@ -115,6 +159,31 @@ def validate_imu(
         check.gaps.append((int(t[i]), int(t[i + 1])))
         log.warning("%s: IMU gap of %.3f s from %d ns to %d ns", where, dt[i] / 1e9, int(t[i]), int(t[i + 1]))
     return ImuSamples(t_ns=t, acc=a, gyro=g), check
+
+
+def _exact_duplicates(
+    t_ns: NDArray[np.int64], acc: NDArray[np.float64], gyro: NDArray[np.float64]
+) -> NDArray[np.bool_]:
+    """True for each sample that repeats the stamp and values of the message before it on the topic
+    (a recorder or a merge writing one message twice); a repeated stamp with other values, or
+    further away, is a clock problem handled as out of order."""
+    n = int(t_ns.shape[0])
+    out = np.zeros(n, dtype=bool)
+    if n > 1:
+        out[1:] = (t_ns[1:] == t_ns[:-1]) & np.all(acc[1:] == acc[:-1], axis=1) & np.all(gyro[1:] == gyro[:-1], axis=1)
+    return out
+
+
+def first_of_each_stamp(stamps: list[int]) -> list[int]:
+    """Indices of the first message of each distinct stamp (later messages with the same stamp are
+    duplicates), in message order."""
+    seen: set[int] = set()
+    out = []
+    for i, t in enumerate(stamps):
+        if t not in seen:
+            seen.add(t)
+            out.append(i)
+    return out
 
 
 class VioBag:
@@ -128,6 +197,8 @@ class VioBag:
         tolerance_ns: pairing tolerance of the two image streams.
         max_image_gap_s, max_imu_gap_s: longer gaps are reported (logged, ``after_gap``).
         max_bad_imu_fraction: more bad IMU samples than this fraction is an error.
+        acc_range, gyro_range: the IMU's range per axis (m/s^2, rad/s; ``ImuConfig.acc_range`` and
+            ``gyro_range``); samples beyond are dropped. None: no range check (only non-finite values).
     """
 
     def __init__(
@@ -140,6 +211,8 @@ class VioBag:
         max_image_gap_s: float = 0.5,
         max_imu_gap_s: float = 0.05,
         max_bad_imu_fraction: float = 0.01,
+        acc_range: float | None = None,
+        gyro_range: float | None = None,
     ) -> None:
         self.path = Path(path)
         self.imu_topic, self.static_topic, self.dynamic_topic = imu_topic, static_topic, dynamic_topic
@@ -147,10 +220,32 @@ class VioBag:
         scan = scan_imu_and_image_stamps(self.path, imu_topic, image_topics)
         where = f"{self.path}: topic {imu_topic}"
         self.imu, self.imu_check = validate_imu(
-            scan.imu_t_ns, scan.imu_acc, scan.imu_gyro, where, max_imu_gap_s, max_bad_imu_fraction
+            scan.imu_t_ns,
+            scan.imu_acc,
+            scan.imu_gyro,
+            where,
+            max_imu_gap_s,
+            max_bad_imu_fraction,
+            np.inf if acc_range is None else acc_range,
+            np.inf if gyro_range is None else gyro_range,
         )
         self.imu_gaps = self.imu_check.gaps
-        self._stamps = scan.image_stamps
+        # exact duplicate images (same topic, same stamp): pair and decode only the first of each
+        self._first: dict[str, list[int]] = {}
+        self._stamps: dict[str, list[int]] = {}
+        self.duplicate_images = 0
+        for topic, stamps in scan.image_stamps.items():
+            first = first_of_each_stamp(stamps)
+            self._first[topic] = first
+            self._stamps[topic] = [stamps[i] for i in first]
+            if len(first) < len(stamps):
+                self.duplicate_images += len(stamps) - len(first)
+                log.warning(
+                    "%s: topic %s: dropped %d image messages whose stamp repeats an earlier image's",
+                    self.path,
+                    topic,
+                    len(stamps) - len(first),
+                )
         self._pairs = self._pair_images(tolerance_ns)
         s = self._stamps[static_topic]
         self.frame_times = np.array(sorted(s[i] for i, _ in self._pairs), dtype=np.int64)
@@ -161,6 +256,7 @@ class VioBag:
             self.image_gaps.append(gap)
             log.warning("%s: image gap of %.3f s from %d ns to %d ns", self.path, dt[i] / 1e9, *gap)
         self._gap_starts = self._frames_after_gaps()
+        check_imu_against_frames(self.imu.t_ns, self.frame_times, where)
 
     # -- first-pass helpers ----------------------------------------------------------------------
     def _pair_images(self, tolerance_ns: int) -> list[tuple[int, int]]:
@@ -222,7 +318,12 @@ class VioBag:
         """Frames in static-stamp order, even where the bag's record order differs."""
         s_topic, d_topic = self.static_topic, self.dynamic_topic
         topics = [s_topic] + ([d_topic] if d_topic else [])
-        groups = self._pairs if d_topic else [(i,) for i, _ in self._pairs]
+        first_s = self._first[s_topic]
+        if d_topic:
+            first_d = self._first[d_topic]
+            groups: list[tuple[int, ...]] = [(first_s[i], first_d[j]) for i, j in self._pairs]
+        else:
+            groups = [(first_s[i],) for i, _ in self._pairs]
         order = sorted(range(len(self._pairs)), key=lambda n: self._stamps[s_topic][self._pairs[n][0]])
         rank = {n: r for r, n in enumerate(order)}
         ready: dict[int, VioFrame] = {}
