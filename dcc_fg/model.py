@@ -16,6 +16,7 @@
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -24,12 +25,30 @@ import numpy as np
 import yaml
 from numpy.typing import NDArray
 
+from dcc_fg.io import validate
 from dcc_fg.io.camchain import camera_from_dict, camera_to_dict
 from dcc_fg.io.outputs import plain, write_text_atomic
 from factors import chain
 from factors.camera import CameraModel
 
 FloatArray = NDArray[np.float64]
+
+log = logging.getLogger(__name__)
+
+TAU_NAMES = ("rx", "ry", "rz", "tx", "ty", "tz")
+DH_NAMES = ("d", "a", "alpha")
+
+
+def _warn_degrees(source: str, tau: dict[str, list[float]], dh: FloatArray) -> None:
+    """Log a warning for angles beyond one turn (rad): probably written in degrees."""
+    angles = {f"{k}[{i}]": v[i] for k, v in tau.items() for i in range(3)}
+    angles.update({f"dh[{i}][2] (alpha)": float(row[2]) for i, row in enumerate(dh)})
+    big = {k: v for k, v in angles.items() if abs(v) > validate.MAX_JOINT_ANGLE_RAD}
+    if big:
+        log.warning(
+            "%s: angle(s) beyond one turn: %s; angles are radians (degrees written by mistake?)",
+            source, ", ".join(f"{k} = {v:g}" for k, v in big.items()),
+        )  # fmt: skip
 
 
 @dataclass
@@ -125,29 +144,69 @@ class GimbalCalibration:
 
     @staticmethod
     def from_dict(d: dict[str, Any], source: str = "<calibration>") -> GimbalCalibration:
+        """Parse a ``gimbal.yaml`` / ``calibration.yaml`` mapping, checking every field.
+
+        Raises:
+            ValueError: naming ``source`` and the field: a missing field; ``joints`` that is not a
+                non-negative integer; ``tau_s`` / ``tau_d`` that are not 6 finite numbers; ``dh``
+                without one row of 3 finite numbers per joint; 1-sigma values (``*_std``) that
+                are negative, non-finite or of the wrong length; a malformed ``observable`` /
+                ``gauge_fixed``; a bad ``cam0`` / ``cam1`` entry (see
+                :func:`dcc_fg.io.camchain.camera_from_dict`).
+        """
+        if not isinstance(d, dict):
+            raise ValueError(f"{source}: expected a mapping with joints, tau_s, tau_d, dh")
         for key in ("joints", "tau_s", "tau_d", "dh"):
             if key not in d:
-                raise ValueError(f"{source}: missing field '{key}'")
-        n = int(d["joints"])
-        dh = np.asarray(d["dh"] if n else np.zeros((0, 3)), dtype=float).reshape(-1, 3)
-        if dh.shape[0] != n:
-            raise ValueError(f"{source}: 'dh' has {dh.shape[0]} rows but joints = {n}")
-        for key in ("tau_s", "tau_d"):
-            if len(d[key]) != 6:
-                raise ValueError(f"{source}: '{key}' must have 6 entries [rx, ry, rz, tx, ty, tz]")
-        cal = GimbalCalibration.from_parts(d["tau_s"], d["tau_d"], dh)
-        if "tau_s_std" in d:
-            std = list(d["tau_s_std"]) + list(d["tau_d_std"]) + [x for row in d.get("dh_std", []) for x in row]
-            cal.kin_std = np.array([np.nan if s is None else float(s) for s in std])
+                raise ValueError(f"{source}: missing field '{key}' (a gimbal file has joints, tau_s, tau_d, dh)")
+        n = validate.integer(d["joints"], f"{source}: joints", unit="joints", minimum=0)
+        tau_form = "[rx, ry, rz, tx, ty, tz] (rad, m)"
+        tau = {
+            key: validate.numbers(d[key], f"{source}: {key}", 6, TAU_NAMES, form=tau_form) for key in ("tau_s", "tau_d")
+        }
+        dh_rows = d["dh"] if d["dh"] is not None else []
+        if not isinstance(dh_rows, list) or len(dh_rows) != n:
+            got = f"{len(dh_rows)} rows" if isinstance(dh_rows, list) else repr(dh_rows)
+            raise ValueError(f"{source}: dh must have one row [d, a, alpha] per joint (joints = {n}), got {got}")
+        dh = np.array(
+            [validate.numbers(row, f"{source}: dh[{i}]", 3, DH_NAMES, form="[d, a, alpha] (m, m, rad)")
+             for i, row in enumerate(dh_rows)],
+            dtype=float,
+        ).reshape(n, 3)  # fmt: skip
+        _warn_degrees(source, tau, dh)
+        cal = GimbalCalibration.from_parts(tau["tau_s"], tau["tau_d"], dh)
+        if any(k in d for k in ("tau_s_std", "tau_d_std", "dh_std")):
+            std = validate.numbers(d.get("tau_s_std"), f"{source}: tau_s_std", 6, TAU_NAMES, allow_null=True,
+                                   nonnegative=True)  # fmt: skip
+            std += validate.numbers(d.get("tau_d_std"), f"{source}: tau_d_std", 6, TAU_NAMES, allow_null=True,
+                                    nonnegative=True)  # fmt: skip
+            rows = d.get("dh_std") if n else (d.get("dh_std") or [])
+            if not isinstance(rows, list) or len(rows) != n:
+                raise ValueError(f"{source}: dh_std must have one row [d, a, alpha] per joint (joints = {n})")
+            for i, row in enumerate(rows):
+                std += validate.numbers(row, f"{source}: dh_std[{i}]", 3, DH_NAMES, allow_null=True, nonnegative=True)
+            cal.kin_std = np.array(std, dtype=float)
         if "observable" in d:
-            cal.observable = np.array([bool(d["observable"].get(k, False)) for k in cal.names])
+            obs = d["observable"]
+            if not isinstance(obs, dict) or not all(isinstance(v, bool) for v in obs.values()):
+                raise ValueError(f"{source}: observable must be a mapping parameter name -> true/false")
+            cal.observable = np.array([bool(obs.get(k, False)) for k in cal.names])
         if "gauge_fixed" in d:
-            cal.gauge_fixed = np.array([k in d["gauge_fixed"] for k in cal.names])
+            fixed = d["gauge_fixed"] or []
+            unknown = [k for k in fixed if k not in cal.names] if isinstance(fixed, list) else None
+            if unknown is None or unknown:
+                raise ValueError(
+                    f"{source}: gauge_fixed must be a list of parameter names ({', '.join(cal.names)}), got {fixed!r}"
+                )
+            cal.gauge_fixed = np.array([k in fixed for k in cal.names])
         if "cam0" in d:
-            cal.static_camera = camera_from_dict(d["cam0"], f"{source}: cam0")
+            cal.static_camera = camera_from_dict(d["cam0"], source, "cam0")
         if "cam1" in d:
-            cal.dynamic_camera = camera_from_dict(d["cam1"], f"{source}: cam1")
-        cal.statistics = dict(d.get("statistics", {}))
+            cal.dynamic_camera = camera_from_dict(d["cam1"], source, "cam1")
+        stats = d.get("statistics") or {}
+        if not isinstance(stats, dict):
+            raise ValueError(f"{source}: statistics must be a mapping, got {stats!r}")
+        cal.statistics = dict(stats)
         return cal
 
     def save(self, path: str | Path) -> None:
@@ -156,14 +215,8 @@ class GimbalCalibration:
 
 
 def load_calibration(path: str | Path) -> GimbalCalibration:
-    """Read a ``calibration.yaml`` or ``gimbal.yaml`` file."""
+    """Read a ``calibration.yaml`` or ``gimbal.yaml`` file (every field checked, see
+    :meth:`GimbalCalibration.from_dict`; errors name the file and the field or YAML line)."""
     path = Path(path)
-    try:
-        with path.open() as f:
-            d = yaml.safe_load(f)
-    except FileNotFoundError:
-        raise FileNotFoundError(f"{path}: calibration file not found") from None
-    if not isinstance(d, dict):
-        raise ValueError(f"{path}: not a YAML mapping")
+    d = validate.load_yaml(path, "calibration", "joints, tau_s, tau_d, dh")
     return GimbalCalibration.from_dict(d, str(path))
-

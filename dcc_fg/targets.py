@@ -13,12 +13,16 @@ board (points on the board have z = 0), metres.
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import yaml
 from numpy.typing import NDArray
+
+from dcc_fg.io import validate
+
+log = logging.getLogger(__name__)
 
 FloatArray = NDArray[np.float64]
 
@@ -98,32 +102,58 @@ def _require(d: dict[str, object], key: str, source: str) -> object:
     return d[key]
 
 
+#: Fewest inner corners per row / column of a checkerboard that OpenCV's detector accepts.
+MIN_CHECKERBOARD_CORNERS = 3
+
+#: A square or tag side beyond this (metres) was probably written in millimetres or centimetres.
+MAX_PLAUSIBLE_SIZE_M = 2.0
+
+
+def _count(d: dict[str, object], key: str, source: str, what: str, minimum: int) -> int:
+    return validate.integer(_require(d, key, source), f"{source}: {key}", unit=what, minimum=minimum)
+
+
+def _length(d: dict[str, object], key: str, source: str) -> float:
+    x = validate.number(_require(d, key, source), f"{source}: {key}", unit="metres", positive=True)
+    if x > MAX_PLAUSIBLE_SIZE_M:
+        log.warning("%s: %s = %g m is larger than %g m; is it in millimetres? Kalibr expects metres", source, key, x,
+                    MAX_PLAUSIBLE_SIZE_M)  # fmt: skip
+    return x
+
+
 def target_from_dict(d: dict[str, object], source: str = "<target>") -> TargetGeometry:
-    """Parse a Kalibr target dictionary; errors name ``source`` and the missing field."""
+    """Parse a Kalibr target dictionary, checking every field.
+
+    Raises:
+        ValueError: naming ``source`` and the field: a missing field, an unknown ``target_type``,
+            corner / tag counts that are not integers (checkerboard: >= 3 inner corners per row and
+            column, OpenCV's minimum; aprilgrid: >= 1 tag), sizes that are not positive finite
+            metres, a ``tagSpacing`` ratio that is not a positive finite number.
+    """
     kind = _require(d, "target_type", source)
     if kind == "checkerboard":
+        n = MIN_CHECKERBOARD_CORNERS
         return TargetGeometry(
             "checkerboard",
-            int(_require(d, "targetCols", source)),  # type: ignore[arg-type]
-            int(_require(d, "targetRows", source)),  # type: ignore[arg-type]
-            col_spacing=float(_require(d, "colSpacingMeters", source)),  # type: ignore[arg-type]
-            row_spacing=float(_require(d, "rowSpacingMeters", source)),  # type: ignore[arg-type]
+            _count(d, "targetCols", source, "inner corners", n),
+            _count(d, "targetRows", source, "inner corners", n),
+            col_spacing=_length(d, "colSpacingMeters", source),
+            row_spacing=_length(d, "rowSpacingMeters", source),
         )
     if kind == "aprilgrid":
         return TargetGeometry.aprilgrid(
-            int(_require(d, "tagCols", source)),  # type: ignore[arg-type]
-            int(_require(d, "tagRows", source)),  # type: ignore[arg-type]
-            float(_require(d, "tagSize", source)),  # type: ignore[arg-type]
-            float(_require(d, "tagSpacing", source)),  # type: ignore[arg-type]
+            _count(d, "tagCols", source, "tags", 1),
+            _count(d, "tagRows", source, "tags", 1),
+            _length(d, "tagSize", source),
+            validate.number(
+                _require(d, "tagSpacing", source), f"{source}: tagSpacing", unit="tagSize (a ratio)", positive=True
+            ),  # fmt: skip
         )
-    raise ValueError(f"{source}: target_type '{kind}' is not supported (checkerboard, aprilgrid)")
+    raise ValueError(f"{source}: target_type must be 'checkerboard' or 'aprilgrid', got {kind!r}")
 
 
 def load_target(path: str | Path) -> TargetGeometry:
-    """Read a Kalibr target YAML file."""
+    """Read a Kalibr target YAML file (every field checked, see :func:`target_from_dict`)."""
     path = Path(path)
-    with path.open() as f:
-        d = yaml.safe_load(f)
-    if not isinstance(d, dict):
-        raise ValueError(f"{path}: not a YAML mapping")
+    d = validate.load_yaml(path, "Kalibr target", "target_type: checkerboard | aprilgrid and its fields")
     return target_from_dict(d, str(path))

@@ -18,6 +18,8 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
+from dcc_fg.io import validate
+
 COLUMNS = (
     "ts",
     "tag_rows",
@@ -66,39 +68,84 @@ def is_detection_csv(path: Path) -> bool:
     return first.strip().replace(" ", "") == HEADER
 
 
+def _bad_line(path: Path, lines: list[tuple[int, str]]) -> ValueError:
+    """The error for the first line of ``lines`` that is not 12 comma-separated numbers."""
+    for line_no, line in lines:
+        fields = line.split(",")
+        if len(fields) != len(COLUMNS):
+            return ValueError(f"{path}:{line_no}: expected {len(COLUMNS)} columns ({HEADER[1:]}), got {len(fields)}")
+        for name, field in zip(COLUMNS, fields, strict=True):
+            try:
+                float(field)
+            except ValueError:
+                return ValueError(f"{path}:{line_no}: column {name} is not a number: {field.strip()!r}")
+    return ValueError(f"{path}: not a numeric table")
+
+
 def read_detection_table(path: str | Path) -> DetectionTable:
-    """Parse one yac detection file.
+    """Parse one yac detection file, checking every value.
 
     Raises:
-        ValueError: naming the file for a wrong header, unparsable numbers, a wrong column
-            count, rows with different timestamps or grid parameters, or a corner index outside 0..3.
+        FileNotFoundError: no such file.
+        ValueError: naming the file (and line, column) for: a folder, bytes that are not UTF-8, an
+            empty file, a wrong header, unparsable numbers, a wrong column count, non-finite
+            values, a ``ts`` that is not a positive integer or differs between rows, grid
+            parameters that differ between rows or are not positive (integer tag counts), a
+            ``tag_id`` that is not a non-negative integer, or a ``corner_idx`` outside 0..3.
     """
     path = Path(path)
-    with path.open() as f:
-        header = f.readline().strip().replace(" ", "")
-        if header != HEADER:
-            raise ValueError(f"{path}: header must be '{HEADER}', got '{header}'")
-        body = f.read()
-    if not body.strip():
+    text = validate.read_text(path, "yac detection CSV", f"header {HEADER}")
+    header, _, body = text.partition("\n")
+    header = header.strip().replace(" ", "")
+    if header != HEADER:
+        raise ValueError(f"{path}: header must be '{HEADER}', got '{header}'")
+    lines = [(k, line) for k, line in enumerate(body.splitlines(), start=2) if line.strip()]
+    if not lines:
         empty_i = np.zeros(0, dtype=np.int64)
         return DetectionTable(None, None, np.zeros((0, 2)), np.zeros((0, 3)), empty_i, empty_i)
     try:
-        data = np.loadtxt(body.splitlines(), delimiter=",", ndmin=2, dtype=np.float64)
-    except ValueError as exc:
-        raise ValueError(f"{path}: not a numeric table ({exc})") from None
+        data = np.loadtxt([line for _, line in lines], delimiter=",", ndmin=2, dtype=np.float64)
+    except ValueError:
+        raise _bad_line(path, lines) from None
     if data.shape[1] != len(COLUMNS):
-        raise ValueError(f"{path}: expected {len(COLUMNS)} columns, got {data.shape[1]}")
+        raise ValueError(f"{path}: expected {len(COLUMNS)} columns ({HEADER[1:]}), got {data.shape[1]}")
+    bad = ~np.isfinite(data)
+    if bad.any():
+        r, c = (int(x) for x in np.argwhere(bad)[0])
+        raise ValueError(f"{path}:{lines[r][0]}: column {COLUMNS[c]} must be a finite number, got {data[r, c]:g}")
     # ts is a 19-digit integer that float64 cannot hold exactly: read it as text.
-    stamps = {int(line.split(",", 1)[0]) for line in body.splitlines() if line.strip()}
+    stamps: set[int] = set()
+    for line_no, line in lines:
+        field = line.split(",", 1)[0].strip()
+        try:
+            ts = int(field)
+        except ValueError:
+            raise ValueError(f"{path}:{line_no}: column ts must be an integer timestamp in ns, got {field!r}") from None
+        if ts <= 0:
+            raise ValueError(f"{path}:{line_no}: column ts must be a positive timestamp in ns, got {ts}")
+        stamps.add(ts)
     if len(stamps) != 1:
         raise ValueError(f"{path}: rows have {len(stamps)} different timestamps in column 'ts'")
     params = np.unique(data[:, 1:5], axis=0)
     if params.shape[0] != 1:
         raise ValueError(f"{path}: rows disagree on tag_rows, tag_cols, tag_size, tag_spacing")
     rows, cols, size, spacing = params[0]
+    where = f"{path}:{lines[0][0]}: column"
+    validate.integer(rows, f"{where} tag_rows", unit="tags", minimum=1)
+    validate.integer(cols, f"{where} tag_cols", unit="tags", minimum=1)
+    validate.number(size, f"{where} tag_size", unit="metres", positive=True)
+    validate.number(spacing, f"{where} tag_spacing", unit="tag_size (a ratio)", positive=True)
+    for c in (COLUMNS.index("tag_id"), COLUMNS.index("corner_idx")):
+        frac = data[:, c] != np.round(data[:, c])
+        if frac.any() or (data[:, c] < 0).any():
+            r = int(np.flatnonzero(frac | (data[:, c] < 0))[0])
+            raise ValueError(
+                f"{path}:{lines[r][0]}: column {COLUMNS[c]} must be a non-negative integer, got {data[r, c]:g}"
+            )
     corner = data[:, 11].astype(np.int64)
     if ((corner < 0) | (corner > 3)).any():
-        raise ValueError(f"{path}: corner_idx must be 0..3")
+        r = int(np.flatnonzero((corner < 0) | (corner > 3))[0])
+        raise ValueError(f"{path}:{lines[r][0]}: corner_idx must be 0..3, got {corner[r]}")
     return DetectionTable(
         timestamp_ns=stamps.pop(),
         grid=(int(rows), int(cols), float(size), float(spacing)),

@@ -16,6 +16,7 @@ Times are parsed from the decimal text to integer ns (never through a float).
 from __future__ import annotations
 
 import csv
+import io
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -23,6 +24,7 @@ import gtsam
 import numpy as np
 from numpy.typing import NDArray
 
+from dcc_fg.io import validate
 from dcc_fg.io.tum import text_to_ns
 
 
@@ -56,33 +58,36 @@ def read_eqvio_rows(path: str | Path | None = None) -> EqvioRows:
     imu_t: list[int] = []
     imu_rows: list[list[float]] = []
     feats: dict[int, list[tuple[int, float, float]]] = {}
-    with path.open(newline="") as f:
-        reader = csv.reader(f)
-        header = next(reader, None)
-        if header is None or header[0] != "row_type":
-            raise ValueError(f"{path}: expected a header starting with 'row_type'")
-        col = {name: i for i, name in enumerate(header)}
-        for name in ("t_abs", "gx", "ax", "landmark_id", "u_norm", "v_norm", "key", "value"):
-            if name not in col:
-                raise ValueError(f"{path}: header lacks column '{name}'")
-        for line, row in enumerate(reader, start=2):
-            kind = row[0]
-            try:
-                if kind == "meta":
-                    meta[row[col["key"]]] = row[col["value"]]
-                elif kind == "imu":
-                    imu_t.append(text_to_ns(row[col["t_abs"]]))
-                    g, a = col["gx"], col["ax"]
-                    imu_rows.append([float(x) for x in row[g : g + 3] + row[a : a + 3]])
-                elif kind == "vision_feature":
-                    t = text_to_ns(row[col["t_abs"]])
-                    feats.setdefault(t, []).append(
-                        (int(row[col["landmark_id"]]), float(row[col["u_norm"]]), float(row[col["v_norm"]]))
-                    )
-                else:
-                    raise ValueError(f"unknown row_type '{kind}'")
-            except (ValueError, IndexError) as err:
-                raise ValueError(f"{path}:{line}: {err}") from None
+    text = validate.read_text(path, "eqvio CSV", "header row_type,t_abs,...")
+    reader = csv.reader(io.StringIO(text, newline=""))
+    header = next(reader, None)
+    if header is None or header[0] != "row_type":
+        raise ValueError(f"{path}: expected a header starting with 'row_type'")
+    col = {name: i for i, name in enumerate(header)}
+    for name in ("t_abs", "gx", "ax", "landmark_id", "u_norm", "v_norm", "key", "value"):
+        if name not in col:
+            raise ValueError(f"{path}: header lacks column '{name}'")
+    for line, row in enumerate(reader, start=2):
+        if not row:
+            continue
+        kind = row[0]
+        try:
+            if kind == "meta":
+                meta[row[col["key"]]] = row[col["value"]]
+            elif kind == "imu":
+                imu_t.append(text_to_ns(row[col["t_abs"]]))
+                g, a = col["gx"], col["ax"]
+                imu_rows.append([float(x) for x in row[g : g + 3] + row[a : a + 3]])
+            elif kind == "vision_feature":
+                t = text_to_ns(row[col["t_abs"]])
+                u, v = float(row[col["u_norm"]]), float(row[col["v_norm"]])
+                if not (np.isfinite(u) and np.isfinite(v)):
+                    raise ValueError(f"u_norm, v_norm must be finite numbers, got {u:g}, {v:g}")
+                feats.setdefault(t, []).append((int(row[col["landmark_id"]]), u, v))
+            else:
+                raise ValueError(f"unknown row_type '{kind}'")
+        except (ValueError, IndexError) as err:
+            raise ValueError(f"{path}:{line}: {err}") from None
     if not imu_t:
         raise ValueError(f"{path}: no imu rows")
     data = np.array(imu_rows)

@@ -18,10 +18,11 @@ from typing import Any, Literal
 
 import cv2
 import numpy as np
-import yaml
 from numpy.typing import NDArray
 
+from dcc_fg.io import validate
 from dcc_fg.io.bag_writer import BagWriter
+from dcc_fg.io.camchain import camera_from_dict
 from factors.camera import CameraModel
 
 log = logging.getLogger(__name__)
@@ -37,55 +38,73 @@ def asl_root(root: str | Path) -> Path:
 
 
 def read_sensor_yaml(path: Path) -> dict[str, Any]:
-    """Parse an ASL ``sensor.yaml`` (OpenCV's ``%YAML:1.0`` header is skipped)."""
-    if not path.is_file():
+    """Parse an ASL ``sensor.yaml`` (OpenCV's ``%YAML:1.0`` header is skipped); errors name the file."""
+    if not path.exists():
         raise ValueError(f"{path}: sensor.yaml not found")
-    lines = path.read_text().splitlines()
-    text = "\n".join(ln for ln in lines if not ln.startswith("%YAML"))
-    d = yaml.safe_load(text) or {}
+    text = validate.read_text(path, "ASL sensor.yaml")
+    lines = text.splitlines()
+    # keep the line count so YAML errors point at the file's own line numbers
+    d = validate.parse_yaml("\n".join("" if ln.startswith("%YAML") else ln for ln in lines), str(path), "sensor.yaml")
     if not isinstance(d, dict):
-        raise ValueError(f"{path}: not a YAML mapping")
+        raise ValueError(f"{path}: not a YAML mapping; expected an ASL sensor.yaml")
     return d
 
 
 def sensor_T_BS(d: dict[str, Any], where: Path) -> FloatArray:
     """``T_BS`` of a parsed ``sensor.yaml``: sensor -> body (IMU), 4x4, checked to be rigid."""
-    try:
-        T = np.asarray(d["T_BS"]["data"], dtype=float).reshape(4, 4)
-    except (KeyError, TypeError, ValueError) as exc:
-        raise ValueError(f"{where}: 'T_BS' must be a 4x4 matrix ({exc})") from None
-    if not np.allclose(T[3], [0, 0, 0, 1]) or not np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-5):
-        raise ValueError(f"{where}: 'T_BS' is not a rigid transform")
-    return T
+    T_BS = d.get("T_BS")
+    data = T_BS.get("data") if isinstance(T_BS, dict) else None
+    if not isinstance(data, list) or len(data) != 16:
+        raise ValueError(f"{where}: T_BS.data must be the 16 entries of a 4x4 matrix (row-major), got {data!r}")
+    return validate.rigid_transform([data[4 * i : 4 * i + 4] for i in range(4)], f"{where}: T_BS")
 
 
 def sensor_camera(d: dict[str, Any], where: Path) -> CameraModel:
-    """The camera model of a parsed camera ``sensor.yaml``."""
-    try:
-        model = _DISTORTION[str(d["distortion_model"])]
-        return CameraModel(
-            tuple(float(x) for x in d["intrinsics"]),  # type: ignore[arg-type]
-            model,
-            tuple(float(x) for x in d["distortion_coefficients"]),
-            tuple(int(x) for x in d["resolution"]),  # type: ignore[arg-type]
-        )
-    except KeyError as exc:
-        raise ValueError(f"{where}: missing or unsupported field {exc}") from None
+    """The camera model of a parsed camera ``sensor.yaml`` (every field checked, errors name the field)."""
+    for key in ("intrinsics", "distortion_model", "distortion_coefficients", "resolution"):
+        if key not in d:
+            raise ValueError(f"{where}: missing field '{key}'")
+    model = str(d["distortion_model"])
+    if model not in _DISTORTION:
+        raise ValueError(f"{where}: distortion_model must be one of {', '.join(_DISTORTION)}, got {model!r}")
+    entry = {
+        "camera_model": d.get("camera_model", "pinhole"),
+        "intrinsics": d["intrinsics"],
+        "distortion_model": _DISTORTION[model],
+        "distortion_coeffs": d["distortion_coefficients"],
+        "resolution": d["resolution"],
+    }
+    return camera_from_dict(entry, str(where))
 
 
 def read_image_list(cam_dir: Path) -> list[tuple[int, Path]]:
-    """``(timestamp_ns, png path)`` of the images listed in ``cam_dir/data.csv`` that exist, sorted."""
+    """``(timestamp_ns, png path)`` of the images listed in ``cam_dir/data.csv`` that exist, sorted.
+
+    Raises:
+        ValueError: naming the file and line for a row that is not ``timestamp,filename`` with a
+            positive integer timestamp (ns), or a timestamp listed twice.
+    """
     csv = cam_dir / "data.csv"
     if not csv.is_file():
         raise ValueError(f"{csv}: image list not found")
     out = []
-    for n, line in enumerate(csv.read_text().splitlines()):
+    seen: dict[int, int] = {}
+    for n, line in enumerate(validate.read_text(csv, "ASL image list").splitlines(), start=1):
         if not line.strip() or line.startswith("#"):
             continue
         parts = [p.strip() for p in line.split(",")]
         if len(parts) < 2:
-            raise ValueError(f"{csv}:{n + 1}: expected 'timestamp,filename'")
-        out.append((int(parts[0]), cam_dir / "data" / parts[1]))
+            raise ValueError(f"{csv}:{n}: expected 'timestamp,filename'")
+        try:
+            stamp = int(parts[0])
+        except ValueError:
+            raise ValueError(f"{csv}:{n}: timestamp must be an integer in ns, got {parts[0]!r}") from None
+        if stamp <= 0:
+            raise ValueError(f"{csv}:{n}: timestamp must be a positive integer in ns, got {stamp}")
+        if stamp in seen:
+            raise ValueError(f"{csv}:{n}: timestamp {stamp} is listed twice (also line {seen[stamp]})")
+        seen[stamp] = n
+        out.append((stamp, cam_dir / "data" / parts[1]))
     present = [(t, p) for t, p in out if p.is_file()]
     if not present:
         raise ValueError(f"{csv}: none of the {len(out)} listed images exists in {cam_dir / 'data'}")
@@ -99,6 +118,7 @@ def read_imu_csv(path: Path) -> tuple[NDArray[np.int64], FloatArray, FloatArray]
     gyroscope (N, 3) rad/s."""
     if not path.is_file():
         raise ValueError(f"{path}: IMU data not found")
+    validate.read_text(path, "ASL IMU CSV")  # a folder, non-UTF-8 bytes, an empty file: named errors
     try:
         raw = np.loadtxt(path, delimiter=",", comments="#", dtype=np.float64, ndmin=2)
         t = np.loadtxt(path, delimiter=",", comments="#", dtype=np.int64, usecols=0, ndmin=1)

@@ -9,6 +9,7 @@ Also used by the bag reader: :class:`FramePair` is what both yield.
 from __future__ import annotations
 
 import csv
+import io
 import logging
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
@@ -18,6 +19,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from dcc_fg.io import validate
 from dcc_fg.io.pairing import DEFAULT_TOLERANCE_NS, Pairing, check_pairing, nearest_within, pair_timestamps
 
 log = logging.getLogger(__name__)
@@ -58,31 +60,57 @@ def read_joints_csv(path: str | Path) -> tuple[NDArray[np.int64], NDArray[np.flo
         (N,) timestamps in ns and (N, L) joint angles in radians.
 
     Raises:
-        ValueError: naming the file and line for a bad header or value.
+        FileNotFoundError: no such file.
+        ValueError: naming the file and line for: a folder, bytes that are not UTF-8, an empty
+            file, a bad header, a wrong field count, a timestamp that is not a positive integer
+            or does not increase, an angle that is not a finite number, or an angle beyond one
+            turn (|theta| > 2*pi: the file looks like degrees, it must be radians).
     """
     path = Path(path)
+    form = "header timestamp_ns,theta_1,...,theta_L, then one row per sample, radians"
+    text = validate.read_text(path, "joints.csv", form)
     stamps: list[int] = []
     rows: list[list[float]] = []
-    with path.open(newline="") as f:
-        reader = csv.reader(f)
-        header = next(reader, None)
-        if header is None:
-            raise ValueError(f"{path}: empty file (expected header timestamp_ns,theta_1,...,theta_L)")
+    lines: list[int] = []
+    reader = csv.reader(io.StringIO(text))
+    try:
+        header = next(reader)
         header = [h.strip().lstrip("#").strip() for h in header]
         if header[0] != "timestamp_ns" or len(header) < 2:
             raise ValueError(f"{path}: header must be 'timestamp_ns,theta_1,...,theta_L', got '{','.join(header)}'")
         n_joints = len(header) - 1
-        for line_no, row in enumerate(reader, start=2):
+        for row in reader:
+            line_no = reader.line_num
             if not row or not "".join(row).strip():
                 continue
             if len(row) != n_joints + 1:
-                raise ValueError(f"{path}:{line_no}: expected {n_joints + 1} fields, got {len(row)}")
+                raise ValueError(
+                    f"{path}:{line_no}: expected {n_joints + 1} fields (timestamp_ns and {n_joints} angles), "
+                    f"got {len(row)}"
+                )
             try:
-                stamps.append(int(row[0]))
-                rows.append([float(x) for x in row[1:]])
+                stamp = int(row[0])
+                values = [float(x) for x in row[1:]]
             except ValueError:
-                raise ValueError(f"{path}:{line_no}: not a number in '{','.join(row)}'") from None
-    return np.array(stamps, dtype=np.int64), np.array(rows, dtype=np.float64).reshape(-1, n_joints)
+                raise ValueError(
+                    f"{path}:{line_no}: not a number in '{','.join(row)}' (expected an integer timestamp_ns and "
+                    f"{n_joints} angles in radians)"
+                ) from None
+            if stamp <= 0:
+                raise ValueError(f"{path}:{line_no}: timestamp_ns must be a positive integer (ns), got {stamp}")
+            if stamps and stamp <= stamps[-1]:
+                raise ValueError(
+                    f"{path}:{line_no}: timestamp_ns {stamp} does not increase (previous row: {stamps[-1]}); "
+                    "rows must be in time order, one per stamp"
+                )
+            stamps.append(stamp)
+            rows.append(values)
+            lines.append(line_no)
+    except csv.Error as exc:
+        raise ValueError(f"{path}:{reader.line_num}: malformed CSV ({exc})") from None
+    angles = np.array(rows, dtype=np.float64).reshape(-1, n_joints)
+    validate.check_joint_angles(angles, str(path), lines)
+    return np.array(stamps, dtype=np.int64), angles
 
 
 def list_timestamped(folder: Path, suffixes: tuple[str, ...]) -> dict[int, Path]:

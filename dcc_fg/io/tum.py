@@ -14,6 +14,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
+from dcc_fg.io import validate
 from dcc_fg.io.outputs import write_text_atomic
 
 NS = 1_000_000_000
@@ -67,11 +68,29 @@ def text_to_ns(text: str) -> int:
     return sign * (abs(int(whole)) * NS + int((frac + "000000000")[:9]))
 
 
+#: Largest accepted | ||q|| - 1 | of a TUM quaternion (files written with 6 decimals are off by ~1e-6;
+#: columns in the wrong order or a non-quaternion are off by far more).
+QUATERNION_NORM_TOLERANCE = 1e-2
+
+
 def read_tum(path: str | Path) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
-    """Read a TUM file: times (N,) int64 ns and poses (N, 4, 4); ValueError names the bad line."""
+    """Read a TUM file: times (N,) int64 ns and poses (N, 4, 4).
+
+    Quaternions are normalized after the check below.
+
+    Raises:
+        FileNotFoundError: no such file.
+        ValueError: naming the file and line for: a folder, bytes that are not UTF-8, an empty
+            file or one without poses, a line without 8 columns, text that is not a number, a
+            non-finite value, a quaternion whose norm is not 1 (within 1e-2), or a timestamp
+            that does not increase.
+    """
     path = Path(path)
-    times, rows = [], []
-    for k, line in enumerate(path.read_text().splitlines(), start=1):
+    form = "one pose per line: t[s] tx ty tz qx qy qz qw"
+    text = validate.read_text(path, "TUM trajectory", form)
+    times: list[int] = []
+    rows: list[list[float]] = []
+    for k, line in enumerate(text.splitlines(), start=1):
         line = line.strip()
         if not line or line.startswith("#"):
             continue
@@ -79,19 +98,33 @@ def read_tum(path: str | Path) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
         if len(parts) != 8:
             raise ValueError(f"{path}:{k}: expected 8 columns 't tx ty tz qx qy qz qw', got {len(parts)}")
         try:
-            times.append(text_to_ns(parts[0]))
-            rows.append([float(x) for x in parts[1:]])
+            t_ns = text_to_ns(parts[0])
+            values = [float(x) for x in parts[1:]]
         except ValueError:
-            raise ValueError(f"{path}:{k}: not a number in '{line}'") from None
+            raise ValueError(f"{path}:{k}: not a number in '{line}' ({form})") from None
+        bad = [
+            name
+            for name, x in zip(("tx", "ty", "tz", "qx", "qy", "qz", "qw"), values, strict=True)
+            if not np.isfinite(x)
+        ]
+        if bad:
+            raise ValueError(f"{path}:{k}: {bad[0]} must be a finite number, got '{line}'")
+        norm = float(np.linalg.norm(values[3:7]))
+        if abs(norm - 1.0) > QUATERNION_NORM_TOLERANCE:
+            raise ValueError(
+                f"{path}:{k}: quaternion qx qy qz qw has norm {norm:.4g}, expected a unit quaternion ({form})"
+            )
+        if times and t_ns <= times[-1]:
+            raise ValueError(
+                f"{path}:{k}: timestamp {parts[0]} s does not increase (previous pose at {ns_to_text(times[-1])} s); "
+                "poses must be in time order, one per stamp"
+            )
+        times.append(t_ns)
+        rows.append(values)
     if not rows:
-        raise ValueError(f"{path}: no poses")
+        raise ValueError(f"{path}: no poses ({form})")
     arr = np.array(rows)
-    if not np.all(np.isfinite(arr)):
-        raise ValueError(f"{path}: non-finite pose values")
     T = np.tile(np.eye(4), (arr.shape[0], 1, 1))
     T[:, :3, :3] = Rotation.from_quat(arr[:, 3:7]).as_matrix()
     T[:, :3, 3] = arr[:, :3]
-    t = np.array(times, dtype=np.int64)
-    if np.any(np.diff(t) <= 0):
-        raise ValueError(f"{path}: timestamps are not strictly increasing")
-    return t, T
+    return np.array(times, dtype=np.int64), T

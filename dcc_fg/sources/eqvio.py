@@ -17,7 +17,9 @@ import gtsam
 import numpy as np
 
 from dcc_fg.data.vio import ImuConfig, ImuSamples, TrackFrame
+from dcc_fg.io import validate
 from dcc_fg.io.eqvio import default_eqvio_path, read_eqvio_rows
+from dcc_fg.io.tum import QUATERNION_NORM_TOLERANCE
 from factors import chain
 
 __all__ = ["EqvioData", "default_eqvio_path", "load_eqvio_csv"]
@@ -42,10 +44,12 @@ def load_eqvio_csv(path: str | Path | None = None) -> EqvioData:
     if meta.get("measurement_space", "normalized") != "normalized":
         raise ValueError(f"{path}: measurement_space is '{meta['measurement_space']}', expected 'normalized'")
     try:
-        t = [float(meta[f"T_ci_t{c}"]) for c in "xyz"]
-        q = [float(meta[f"T_ci_q{c}"]) for c in "wxyz"]
+        t = [validate.number(meta[f"T_ci_t{c}"], f"{path}: meta T_ci_t{c}", unit="metres") for c in "xyz"]
+        q = [validate.number(meta[f"T_ci_q{c}"], f"{path}: meta T_ci_q{c}") for c in "wxyz"]
     except KeyError as err:
         raise ValueError(f"{path}: meta row {err} (camera-IMU extrinsic) missing") from None
+    if abs(float(np.linalg.norm(q)) - 1.0) > QUATERNION_NORM_TOLERANCE:
+        raise ValueError(f"{path}: meta T_ci_q{{w,x,y,z}} has norm {np.linalg.norm(q):.4g}, expected a unit quaternion")
     T_Ic = gtsam.Pose3(gtsam.Rot3.Quaternion(*q), np.array(t)).matrix()
     imu = ImuSamples(rows.imu_t_ns, rows.imu_acc, rows.imu_gyro)
     frames = [TrackFrame(t_ns, ids, xy) for t_ns, ids, xy in rows.features]

@@ -17,6 +17,7 @@ import yaml
 from numpy.typing import NDArray
 
 from dcc_fg.data.vio import ImuConfig, ImuSamples
+from dcc_fg.io import validate
 from dcc_fg.io.euroc import asl_root, read_image_list, read_imu_csv, read_sensor_yaml, sensor_camera, sensor_T_BS
 from dcc_fg.io.outputs import write_text_atomic
 from dcc_fg.model import GimbalCalibration
@@ -51,13 +52,18 @@ def load_euroc(root: str | Path) -> EurocDataset:
     """Read an ASL folder (``root`` is the ``mav0`` folder or its parent)."""
     root = asl_root(root)
     s0, s1, si = (read_sensor_yaml(root / c / "sensor.yaml") for c in ("cam0", "cam1", "imu0"))
+    imu_yaml = root / "imu0/sensor.yaml"
+
+    def noise(key: str, default: float) -> float:
+        return validate.number(si.get(key, default), f"{imu_yaml}: {key}", positive=True)
+
     imu_cfg = ImuConfig(
-        T_sI=inv_se3(sensor_T_BS(s0, root / "cam0/sensor.yaml")) @ sensor_T_BS(si, root / "imu0/sensor.yaml"),
-        accelerometer_noise_density=float(si.get("accelerometer_noise_density", 2.0e-3)),
-        accelerometer_random_walk=float(si.get("accelerometer_random_walk", 3.0e-3)),
-        gyroscope_noise_density=float(si.get("gyroscope_noise_density", 1.6968e-4)),
-        gyroscope_random_walk=float(si.get("gyroscope_random_walk", 1.9393e-5)),
-        rate_hz=float(si.get("rate_hz", 200.0)),
+        T_sI=inv_se3(sensor_T_BS(s0, root / "cam0/sensor.yaml")) @ sensor_T_BS(si, imu_yaml),
+        accelerometer_noise_density=noise("accelerometer_noise_density", 2.0e-3),
+        accelerometer_random_walk=noise("accelerometer_random_walk", 3.0e-3),
+        gyroscope_noise_density=noise("gyroscope_noise_density", 1.6968e-4),
+        gyroscope_random_walk=noise("gyroscope_random_walk", 1.9393e-5),
+        rate_hz=noise("rate_hz", 200.0),
     )
     t, acc, gyro = read_imu_csv(root / "imu0/data.csv")
     return EurocDataset(

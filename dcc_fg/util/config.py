@@ -81,6 +81,8 @@ def _convert(value: Any, tp: Any, where: str) -> Any:
     if tp in (int, float):
         if isinstance(value, bool) or not isinstance(value, int | float | np.integer | np.floating):
             raise ConfigError(f"{where}: expected a number, got {value!r}")
+        if not np.isfinite(float(value)):
+            raise ConfigError(f"{where}: expected a finite number, got {value!r}")
         if tp is int:
             if float(value) != int(value):
                 raise ConfigError(f"{where}: expected an integer, got {value!r}")
@@ -145,10 +147,16 @@ def load_yaml_config(path: str | Path, cls: type[T], command: str) -> T:
     command is refused. It may also be a ``summary.json`` of an earlier run, whose ``options`` are used.
     """
     p = Path(path)
+    if p.is_dir():
+        raise ConfigError(f"{p}: is a folder; expected a configuration YAML file (dcc-fg config --print {command})")
     if not p.is_file():
         raise FileNotFoundError(f"{p}: configuration file not found")
     try:
-        data = yaml.safe_load(p.read_text()) or {}
+        data = yaml.safe_load(p.read_bytes().decode("utf-8")) or {}
+    except UnicodeDecodeError as exc:
+        raise ConfigError(
+            f"{p}: not a text file (byte offset {exc.start} is not UTF-8); expected a YAML file"
+        ) from None
     except yaml.YAMLError as exc:
         raise ConfigError(f"{p}: malformed YAML: {' '.join(str(exc).split())}") from exc
     if not isinstance(data, dict):
