@@ -15,6 +15,11 @@ reads).  Decoded images are (H, W) grey or (H, W, 3|4) BGR(A), uint8 or uint16, 
 stamp is zero).  Joint angles are ``JointState.position`` (radians), in the order of
 ``joint_names`` if given, else as recorded.
 
+Repeated messages are dropped while reading, the same way on every pass (:class:`DuplicateFilter`):
+exact duplicates (same topic, header stamp and bytes) on every topic, and a second, different image
+with the stamp of an earlier one on an image topic (the first is kept); one warning per topic gives
+the count.  Joint positions must be finite radians (within one turn).
+
 Corrupt or truncated bags raise ``ValueError`` naming the bag; only the exceptions that rosbags
 and its storage raise for bad files (:func:`is_bad_bag_error`) are turned into that message, so a
 programming error still ends in its own traceback.  Writing: :mod:`dcc_fg.io.bag_writer`.
@@ -22,9 +27,11 @@ programming error still ends in its own traceback.  Writing: :mod:`dcc_fg.io.bag
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import sqlite3
 import struct
+from collections import OrderedDict
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -41,6 +48,7 @@ from rosbags.rosbag2 import ReaderError as Rosbag2ReaderError
 from rosbags.serde import SerdeError
 from rosbags.typesys import Stores, get_typestore
 
+from dcc_fg.io import validate
 from dcc_fg.io.folders import FramePair
 from dcc_fg.io.pairing import DEFAULT_TOLERANCE_NS, Pairing, check_pairing, nearest_within, pair_timestamps
 
@@ -191,13 +199,89 @@ def open_bag(path: Path) -> Iterator[AnyReader]:
         reader.close()
 
 
-def bag_messages(path: Path, reader: AnyReader, conns: list[Connection]) -> Iterator[tuple[Connection, int, Any]]:
-    """(connection, record time ns, deserialized message); corrupt data -> ValueError naming the bag."""
+class DuplicateFilter:
+    """Drops repeated messages of a topic, in the same way on every pass over a bag.
+
+    * an **exact duplicate** (same topic, same header stamp, identical serialized bytes: a message
+      recorded twice) is dropped on every topic;
+    * a **different image with the stamp of an earlier image** of the same topic is dropped too
+      (the first one is kept): two images cannot both be the frame of one instant.
+
+    Only the last :attr:`WINDOW` stamps of each topic are remembered (a duplicate is recorded next
+    to its original), so memory stays bounded on long bags.
+
+    Attributes:
+        exact: per topic, the number of exact duplicates dropped.
+        same_stamp: per image topic, the number of different images dropped for a repeated stamp.
+        first: per topic, the stamp (ns) of the first message dropped.
+    """
+
+    WINDOW = 10_000
+
+    def __init__(self) -> None:
+        self._recent: dict[str, OrderedDict[int, bytes]] = {}
+        self.exact: dict[str, int] = {}
+        self.same_stamp: dict[str, int] = {}
+        self.first: dict[str, int] = {}
+
+    def drop(self, topic: str, stamp: int, raw: bytes | memoryview, image: bool) -> bool:
+        """True if the message (``raw`` bytes, header ``stamp`` ns) repeats an earlier one of ``topic``."""
+        recent = self._recent.setdefault(topic, OrderedDict())
+        digest = hashlib.blake2b(raw, digest_size=16).digest()
+        seen = recent.get(stamp)
+        if seen is None:
+            recent[stamp] = digest
+            if len(recent) > self.WINDOW:
+                recent.popitem(last=False)
+            return False
+        if seen == digest:
+            self.exact[topic] = self.exact.get(topic, 0) + 1
+        elif image:
+            self.same_stamp[topic] = self.same_stamp.get(topic, 0) + 1
+        else:
+            return False
+        self.first.setdefault(topic, stamp)
+        return True
+
+    def dropped(self, topic: str) -> int:
+        """Messages of ``topic`` dropped so far."""
+        return self.exact.get(topic, 0) + self.same_stamp.get(topic, 0)
+
+    def log(self, path: Path) -> None:
+        """One warning per topic with dropped messages."""
+        for topic in sorted(set(self.exact) | set(self.same_stamp)):
+            if self.exact.get(topic):
+                log.warning(
+                    "%s: topic %s: dropped %d exact duplicate messages (same header stamp and identical bytes as an "
+                    "earlier message; first at %d ns)",
+                    path, topic, self.exact[topic], self.first[topic],
+                )  # fmt: skip
+            if self.same_stamp.get(topic):
+                log.warning(
+                    "%s: topic %s: %d images have the header stamp of an earlier, different image; kept the first of "
+                    "each stamp (first at %d ns). Check the camera driver's time stamps",
+                    path, topic, self.same_stamp[topic], self.first[topic],
+                )  # fmt: skip
+
+
+def bag_messages(
+    path: Path, reader: AnyReader, conns: list[Connection], duplicates: DuplicateFilter | None = None
+) -> Iterator[tuple[Connection, int, Any]]:
+    """(connection, record time ns, deserialized message); corrupt data -> ValueError naming the bag.
+
+    Repeated messages are dropped by ``duplicates`` (see :class:`DuplicateFilter`; a new filter if
+    None, which logs what it dropped when the bag has been read to the end).  Every pass over a
+    bag drops the same messages, so message indices of one pass hold in the next.
+    """
+    own = duplicates is None
+    dup = DuplicateFilter() if duplicates is None else duplicates
     it = reader.messages(connections=conns)
     while True:
         try:
             item = next(it)
         except StopIteration:
+            if own:
+                dup.log(path)
             return
         except (*BAG_ERRORS, AssertionError) as exc:
             if not is_bad_bag_error(exc):
@@ -208,6 +292,8 @@ def bag_messages(path: Path, reader: AnyReader, conns: list[Connection]) -> Iter
             msg = reader.deserialize(raw, conn.msgtype)
         except BAG_ERRORS as exc:
             raise ValueError(f"{path}: topic {conn.topic}: message at {t} ns does not deserialize ({exc})") from None
+        if hasattr(msg, "header") and dup.drop(conn.topic, stamp_ns(msg, t), raw, conn.msgtype in IMAGE_TYPES):
+            continue
         yield conn, t, msg
 
 
@@ -251,7 +337,8 @@ def stream_image_groups(
     pending: dict[int, dict[int, StampedImage]] = {}
     with open_bag(path) as reader:
         conns = [c for c in reader.connections if c.topic in slot]
-        for conn, t, msg in bag_messages(path, reader, conns):
+        # the first pass logged the dropped duplicates; this one drops the same messages silently
+        for conn, t, msg in bag_messages(path, reader, conns, DuplicateFilter()):
             k = slot[conn.topic]
             n = group_of[k].get(count[k])
             count[k] += 1
@@ -293,6 +380,7 @@ class BagImagePairs:
         pairing: the pairing of the two topics' stamps; its unpaired lists report the frames
             without a partner (also logged).
         joints: ``(stamps_ns, angles)`` of the joint topic, or None.
+        duplicates: the repeated messages dropped (see :class:`DuplicateFilter`).
     """
 
     def __init__(
@@ -333,12 +421,14 @@ class BagImagePairs:
             self.joint_topic = joint_state_topic(reader, self.path, joint_topic)
             if self.joint_topic is not None:
                 conns += [c for c in reader.connections if c.topic == self.joint_topic]
-            for conn, t, msg in bag_messages(self.path, reader, conns):
+            self.duplicates = DuplicateFilter()
+            for conn, t, msg in bag_messages(self.path, reader, conns, self.duplicates):
                 if conn.topic == self.joint_topic:
                     joint_stamps.append(stamp_ns(msg, t))
                     joint_rows.append(self._joint_positions(msg, t))
                 else:
                     stamps[conn.topic].append(stamp_ns(msg, t))
+        self.duplicates.log(self.path)
         self._stamps = stamps
         self.pairing: Pairing = pair_timestamps(stamps[static_topic], stamps[dynamic_topic], tolerance_ns)
         check_pairing(
@@ -352,7 +442,12 @@ class BagImagePairs:
         if self.joint_topic is not None:
             if not joint_rows:
                 raise ValueError(f"{self.path}: topic {self.joint_topic} has no messages")
-            self.joints = (np.array(joint_stamps, dtype=np.int64), np.stack(joint_rows))
+            if len({row.shape for row in joint_rows}) != 1:
+                counts = sorted({row.shape[0] for row in joint_rows})
+                raise ValueError(f"{self.path}: topic {self.joint_topic}: messages have {counts} joint positions")
+            angles = np.stack(joint_rows)
+            validate.check_joint_angles(angles, f"{self.path}: topic {self.joint_topic} position")
+            self.joints = (np.array(joint_stamps, dtype=np.int64), angles)
 
     def _joint_positions(self, msg: Any, t: int) -> NDArray[np.float64]:
         pos = np.asarray(msg.position, dtype=np.float64)

@@ -29,12 +29,48 @@ class Pairing:
         unpaired_static: static timestamps (ns) without a dynamic frame within the tolerance.
         unpaired_dynamic: dynamic timestamps (ns) without a static frame within the tolerance.
         tolerance_ns: the tolerance used.
+        static_ns, dynamic_ns: the two timestamp lists that were paired (the indices of ``pairs``
+            refer to them), ns.
     """
 
     pairs: list[tuple[int, int]] = field(default_factory=list)
     unpaired_static: list[int] = field(default_factory=list)
     unpaired_dynamic: list[int] = field(default_factory=list)
     tolerance_ns: int = DEFAULT_TOLERANCE_NS
+    static_ns: list[int] = field(default_factory=list, repr=False)
+    dynamic_ns: list[int] = field(default_factory=list, repr=False)
+
+    def statistics(self) -> dict[str, float | int | None]:
+        """Numbers for a pairing health check (milliseconds; None where undefined).
+
+        Returns:
+            ``pairs``; ``gap_median_ms`` / ``gap_max_ms``: median and largest
+            ``|t_dynamic - t_static|`` over the pairs; ``gap_median_signed_ms``: median of
+            ``t_dynamic - t_static``; ``period_static_ms`` / ``period_dynamic_ms``: median frame
+            period of each camera (median difference of its sorted distinct stamps);
+            ``unpaired_static`` / ``unpaired_dynamic``: frames without a partner;
+            ``tolerance_ms``: the pairing tolerance.
+        """
+        s = np.asarray(self.static_ns, dtype=np.int64)
+        d = np.asarray(self.dynamic_ns, dtype=np.int64)
+        out: dict[str, float | int | None] = {
+            "pairs": len(self.pairs),
+            "gap_median_ms": None,
+            "gap_max_ms": None,
+            "gap_median_signed_ms": None,
+            "period_static_ms": median_period_ms(s),
+            "period_dynamic_ms": median_period_ms(d),
+            "unpaired_static": len(self.unpaired_static),
+            "unpaired_dynamic": len(self.unpaired_dynamic),
+            "tolerance_ms": self.tolerance_ns / 1e6,
+        }
+        if self.pairs and s.size and d.size:
+            idx = np.asarray(self.pairs, dtype=np.int64)
+            gap = (d[idx[:, 1]] - s[idx[:, 0]]).astype(float) / 1e6
+            out["gap_median_ms"] = float(np.median(np.abs(gap)))
+            out["gap_max_ms"] = float(np.max(np.abs(gap)))
+            out["gap_median_signed_ms"] = float(np.median(gap))
+        return out
 
     def summary(self, static_name: str = "cam0", dynamic_name: str = "cam1") -> str:
         """One line: counts of pairs and unpaired frames per stream."""
@@ -90,7 +126,15 @@ def pair_timestamps(
         unpaired_static=sorted(int(x) for x in s[~used_s]),
         unpaired_dynamic=sorted(int(x) for x in d[~used_d]),
         tolerance_ns=int(tolerance_ns),
+        static_ns=[int(x) for x in s],
+        dynamic_ns=[int(x) for x in d],
     )
+
+
+def median_period_ms(stamps_ns: Sequence[int] | NDArray[np.int64]) -> float | None:
+    """Median difference of the sorted distinct stamps, ms (None for fewer than 2 stamps)."""
+    t = np.unique(np.asarray(stamps_ns, dtype=np.int64))
+    return float(np.median(np.diff(t))) / 1e6 if t.size >= 2 else None
 
 
 def nearest_within(

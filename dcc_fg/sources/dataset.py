@@ -170,6 +170,7 @@ def _input_report(
         "detected_dynamic": sum(1 for s in snapshots if len(s.dynamic) > 0),
         "kept": len(kept),
         "rejected": len(snapshots) - len(kept),
+        "pairing": pairing.statistics(),
     }
 
 
@@ -213,7 +214,10 @@ def load_dataset(
             after timestamp pairing), ``unpaired_static`` / ``unpaired_dynamic`` (frame counts
             without a partner), ``detected_static`` / ``detected_dynamic`` (pairs where the
             target was found), ``kept`` and ``rejected`` (pairs with / without
-            ``min_common_points`` common points).
+            ``min_common_points`` common points), and ``pairing``: the timestamp pairing's
+            statistics (:meth:`dcc_fg.io.pairing.Pairing.statistics`: number of pairs, median and
+            largest stamp gap of the pairs, each camera's median frame period, in ms, unpaired
+            frames per camera) for a pairing health check.
 
     Returns:
         The dataset; ``source`` is ``path``.
