@@ -9,6 +9,7 @@ beside the paper's Tables I-III and writes ``calibration.yaml``, ``joint_angles.
 
 from __future__ import annotations
 
+import logging
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -18,6 +19,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from dcc_fg.calibrate import CalibrationOptions, CalibrationResult, calibrate
+from dcc_fg.calibration_health import calibration_health
+from dcc_fg.io.output_set import OutputSet
 from dcc_fg.io.outputs import write_joint_angles_csv, write_json
 from dcc_fg.model import GimbalCalibration
 from dcc_fg.plots.output import write_calibration_outputs
@@ -26,6 +29,8 @@ from dcc_fg.sim.calibration_scene import SceneConfig, SimulatedCalibration, simu
 from dcc_fg.studies.calibration_accuracy import CramerRaoBound, cramer_rao_bound, evaluate_against_truth
 
 FloatArray = NDArray[np.float64]
+
+log = logging.getLogger("dcc_fg.demo")
 
 # the paper's Tables I-III (simulation)
 PAPER = {
@@ -144,19 +149,30 @@ def run_demo(
 
     ``figures`` saves the calibration figures (with the ground truth) as ``out_dir/calibration_*.png``;
     ``report`` also writes ``out_dir/report.pdf`` (the demo table, then the figures); ``provenance``
-    (version, command line, options) is written first in ``summary.json``.
+    (version, command line, options) is written first in ``summary.json``. ``summary.json`` also
+    records the health checks of the bundle calibration (``health``; a failure is logged as a
+    warning: the simulated study should always be healthy). The files are written as one output set
+    (:class:`~dcc_fg.io.output_set.OutputSet`, command ``demo``): ``out_dir`` is checked before the
+    work and nothing is written when the run fails or is interrupted.
     """
+    outputs = OutputSet(out_dir, "demo")
     t0 = time.perf_counter()
-    runs = run_demo_calibrations(seed, n_joints)
-    summary = {**(provenance or {}), **demo_summary(runs, seed)}
-    out_dir.mkdir(parents=True, exist_ok=True)
-    runs.bundle.calibration.save(out_dir / "calibration.yaml")
-    write_joint_angles_csv(out_dir / "joint_angles.csv", runs.bundle.timestamps_ns, runs.bundle.joint_angles)
-    summary["total_time_s"] = time.perf_counter() - t0  # simulation, calibrations, evaluation (figures: below)
-    t_fig = time.perf_counter()
-    figure_paths = write_demo_figures(out_dir, runs, summary, report) if figures or report else []
-    summary["figures_time_s"] = time.perf_counter() - t_fig
-    write_json(out_dir / "summary.json", summary)
+    with outputs:
+        runs = run_demo_calibrations(seed, n_joints)
+        summary = {**(provenance or {}), **demo_summary(runs, seed)}
+        health = calibration_health(result=runs.bundle, data=runs.sim.calibration_set)
+        summary["health"] = health.to_dict()
+        for check in health.failures:
+            log.warning("demo calibration failed a health check: %s: %s", check.name, check.message)
+        stage = outputs.path
+        runs.bundle.calibration.save(stage / "calibration.yaml")
+        write_joint_angles_csv(stage / "joint_angles.csv", runs.bundle.timestamps_ns, runs.bundle.joint_angles)
+        summary["total_time_s"] = time.perf_counter() - t0  # simulation, calibrations, evaluation (figures: below)
+        t_fig = time.perf_counter()
+        staged = write_demo_figures(stage, runs, summary, report) if figures or report else []
+        figure_paths = [outputs.final(p) for p in staged]
+        summary["figures_time_s"] = time.perf_counter() - t_fig
+        write_json(stage / "summary.json", summary)
     if verbose:
         print_demo_summary(out_dir, summary, figure_paths)
     return summary

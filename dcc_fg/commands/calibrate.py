@@ -20,9 +20,11 @@ import yaml
 
 from dcc_fg.auto_init import auto_initialize
 from dcc_fg.calibrate import CalibrationOptions, CalibrationResult, calibrate
+from dcc_fg.calibration_health import calibration_health
 from dcc_fg.commands import common
 from dcc_fg.data import CalibrationDataset, common_corners
 from dcc_fg.io.camchain import CamchainEntry
+from dcc_fg.io.output_set import OutputSet
 from dcc_fg.io.outputs import plain, write_text_atomic
 from dcc_fg.model import GimbalCalibration, load_calibration
 from dcc_fg.plots.output import write_calibration_outputs
@@ -75,9 +77,12 @@ class InitOptions:
 
 @dataclass
 class OutputOptions:
-    """``report``: also save the figures (``OUT/calibration_*.png``) and ``OUT/report.pdf``."""
+    """``report``: also save the figures (``OUT/calibration_*.png``) and ``OUT/report.pdf``;
+    ``accept_unhealthy``: write a result that failed its health checks (marked ``health.healthy:
+    false`` in ``summary.json``) instead of refusing it."""
 
     report: bool = False
+    accept_unhealthy: bool = False
 
 
 @dataclass
@@ -116,6 +121,18 @@ class CalibrationInputs:
             "target": self.target,
             "gimbal": self.gimbal,
             "calibration": self.calibration,
+        }
+
+    def by_option(self, config_file: str | Path | None = None) -> dict[str, str | Path | None]:
+        """The input paths by the option that gave them (``--config`` included), for the output checks."""
+        p = self.paths()
+        return {
+            "DATA": p["data"],
+            "--camchain": p["camchain"],
+            "--target": p["target"],
+            "--gimbal": p["gimbal"],
+            "--calibration": p["calibration"],
+            "--config": config_file,
         }
 
 
@@ -177,10 +194,15 @@ def joint_angles_csv_text(result: CalibrationResult) -> str:
 
 
 def write_calibration_files(
-    out: Path, result: CalibrationResult, reader_report: dict[str, Any], provenance: dict[str, Any], quiet: bool
-) -> None:
-    """Write calibration.yaml, joint_angles.csv and summary.json: every text is serialized before the
-    first file is touched, each file is replaced atomically; then print the summary table."""
+    out: Path,
+    result: CalibrationResult,
+    reader_report: dict[str, Any],
+    provenance: dict[str, Any],
+    health: dict[str, Any] | None = None,
+) -> list[Path]:
+    """Write calibration.yaml, joint_angles.csv and summary.json (with ``health``, the result's health
+    checks) into ``out`` (the staging folder of the run's output set); every text is serialized before
+    the first file is touched. Returns the paths written."""
     stats = result.calibration.statistics
     if reader_report:
         stats["input"] = dict(reader_report)
@@ -193,21 +215,47 @@ def write_calibration_files(
         stats["T_ds_std"] = tds
     cal_text = yaml.safe_dump(result.calibration.to_dict(), sort_keys=False)
     csv_text = joint_angles_csv_text(result)
-    json_text = json.dumps(plain({**provenance, **stats}), indent=2) + "\n"
+    summary = {**provenance, **stats}
+    if health is not None:
+        summary["health"] = health
+    json_text = json.dumps(plain(summary), indent=2) + "\n"
     out.mkdir(parents=True, exist_ok=True)
-    write_text_atomic(out / "calibration.yaml", cal_text)
-    write_text_atomic(out / "joint_angles.csv", csv_text)
-    write_text_atomic(out / "summary.json", json_text)
-    if not quiet:
-        print(run_summary_table(stats))
-        print(f"wrote {out / 'calibration.yaml'}, {out / 'joint_angles.csv'}, {out / 'summary.json'}")
+    paths = [out / "calibration.yaml", out / "joint_angles.csv", out / "summary.json"]
+    for path, text in zip(paths, (cal_text, csv_text, json_text), strict=True):
+        write_text_atomic(path, text)
+    return paths
 
 
-def write_report(out: Path, result: CalibrationResult, data: CalibrationDataset, quiet: bool) -> None:
-    """The calibration figures as ``OUT/calibration_*.png`` and ``OUT/report.pdf``."""
+def write_report(out: Path, result: CalibrationResult, data: CalibrationDataset) -> list[Path]:
+    """The calibration figures as ``OUT/calibration_*.png`` and ``OUT/report.pdf``; the paths written."""
     text = run_summary_table(result.calibration.statistics) + "\n\n" + parameter_table(result.calibration)
-    paths = write_calibration_outputs(out, result, text, target_points=data.target_points)
+    return write_calibration_outputs(out, result, text, target_points=data.target_points)
+
+
+def write_calibration_set(
+    outputs: OutputSet,
+    result: CalibrationResult,
+    data: CalibrationDataset,
+    reader_report: dict[str, Any],
+    provenance: dict[str, Any],
+    config: CalibrateConfig | ValidateConfig,
+) -> list[Path]:
+    """Judge the result's health (:func:`~dcc_fg.calibration_health.calibration_health`; an unhealthy
+    result raises :class:`~dcc_fg.util.health.UnhealthyResultError` unless
+    ``config.output.accept_unhealthy``), then write the files (and, with ``config.output.report``, the
+    figures and report) into the staging folder of ``outputs``. Returns the final paths."""
+    health = calibration_health(result=result, data=data, reader_report=reader_report)
+    health_block = common.judge_health(health, config.output.accept_unhealthy)
+    paths = write_calibration_files(outputs.path, result, reader_report, provenance, health_block)
+    if config.output.report:
+        paths += write_report(outputs.path, result, data)
+    return [outputs.final(p) for p in paths]
+
+
+def print_written(result: CalibrationResult, paths: list[Path], quiet: bool) -> None:
+    """The summary table and the files written (unless ``quiet``)."""
     if not quiet:
+        print(run_summary_table(result.calibration.statistics))
         print("wrote " + ", ".join(str(p) for p in paths))
 
 
@@ -232,18 +280,28 @@ def initial_values(
 
 
 def run_calibrate(
-    inputs: CalibrationInputs, out: Path, config: CalibrateConfig, progress: bool = False, quiet: bool = False
+    inputs: CalibrationInputs,
+    out: Path,
+    config: CalibrateConfig,
+    progress: bool = False,
+    quiet: bool = False,
+    config_file: str | Path | None = None,
 ) -> CalibrationResult:
-    """Calibrate from ``inputs`` with ``config``; writes ``out`` (see :func:`write_calibration_files`)."""
+    """Calibrate from ``inputs`` with ``config``; writes ``out`` as one output set
+    (:class:`~dcc_fg.io.output_set.OutputSet`: ``out`` is checked before any work, nothing is written
+    when the run fails, is interrupted or its result is unhealthy and not accepted).
+    ``config_file``: the ``--config`` file, protected like the inputs."""
     if config.solver.mode not in ("encoderless", "encoders"):
         raise ConfigError(f"solver.mode must be encoderless or encoders for calibrate, got {config.solver.mode!r}")
-    report: dict[str, Any] = {}
-    data = load_calibration_data(inputs, inputs.camchain, config.reader, progress, report)
-    initial, data = initial_values(inputs, config.init, config.solver.mode, data)
-    result = calibrate(data, initial, config.solver)
-    write_calibration_files(out, result, report, run_record("calibrate", inputs.paths(), config), quiet)
-    if config.output.report:
-        write_report(out, result, data, quiet)
+    outputs = OutputSet(out, "calibrate", inputs.by_option(config_file))
+    with outputs:
+        report: dict[str, Any] = {}
+        data = load_calibration_data(inputs, inputs.camchain, config.reader, progress, report)
+        initial, data = initial_values(inputs, config.init, config.solver.mode, data)
+        result = calibrate(data, initial, config.solver)
+        provenance = run_record("calibrate", inputs.paths(), config)
+        paths = write_calibration_set(outputs, result, data, report, provenance, config)
+    print_written(result, paths, quiet)
     return result
 
 
@@ -257,18 +315,26 @@ def validation_camchain(inputs: CalibrationInputs, cal: GimbalCalibration) -> An
 
 
 def run_validate(
-    inputs: CalibrationInputs, out: Path, config: ValidateConfig, progress: bool = False, quiet: bool = False
+    inputs: CalibrationInputs,
+    out: Path,
+    config: ValidateConfig,
+    progress: bool = False,
+    quiet: bool = False,
+    config_file: str | Path | None = None,
 ) -> CalibrationResult:
-    """Hold ``inputs.calibration`` fixed and estimate the joint angles of ``inputs.data``."""
+    """Hold ``inputs.calibration`` fixed and estimate the joint angles of ``inputs.data``; writes
+    ``out`` as one output set (see :func:`run_calibrate`)."""
     if inputs.calibration is None:
         raise ValueError("validate needs --calibration")
-    cal = load_calibration(inputs.calibration)
-    report: dict[str, Any] = {}
-    data = load_calibration_data(inputs, validation_camchain(inputs, cal), config.reader, progress, report)
-    result = calibrate(data, cal, CalibrationOptions(mode="validate"))
-    write_calibration_files(out, result, report, run_record("validate", inputs.paths(), config), quiet)
-    if config.output.report:
-        write_report(out, result, data, quiet)
+    outputs = OutputSet(out, "validate", inputs.by_option(config_file))
+    with outputs:
+        cal = load_calibration(inputs.calibration)
+        report: dict[str, Any] = {}
+        data = load_calibration_data(inputs, validation_camchain(inputs, cal), config.reader, progress, report)
+        result = calibrate(data, cal, CalibrationOptions(mode="validate"))
+        provenance = run_record("validate", inputs.paths(), config)
+        paths = write_calibration_set(outputs, result, data, report, provenance, config)
+    print_written(result, paths, quiet)
     return result
 
 
@@ -290,6 +356,10 @@ def add_reader_flags(p: argparse.ArgumentParser) -> None:
         "only one camera tends to see the board")  # fmt: skip
     opt(p, "--report", "output.report", action="store_true",
         help="also save the figures (OUT/calibration_*.png) and OUT/report.pdf")  # fmt: skip
+    opt(p, "--accept-unhealthy", "output.accept_unhealthy", action="store_true", help="write a result that "
+        "failed its health checks (residuals against the pixel noise, convergence, joint ranges, image pairing) "
+        "instead of refusing it with exit code 3; summary.json then says health: healthy: false, with the "
+        "reasons")  # fmt: skip
 
 
 def add_solver_flags(c: argparse.ArgumentParser) -> None:
@@ -332,8 +402,7 @@ def add_parsers(sub: Any, parent: argparse.ArgumentParser) -> None:
     c.add_argument("--gimbal", help="initial kinematics YAML (joints, tau_s, tau_d, dh; rad and m)")
     add_solver_flags(c)
     c.add_argument("--out", default="dcc_fg_calibration", help="output folder for calibration.yaml, joint_angles.csv "
-                   "(ns, rad) and summary.json; files are replaced atomically and only after a successful run "
-                   "(default ./dcc_fg_calibration)")  # fmt: skip
+                   f"(ns, rad) and summary.json (default ./dcc_fg_calibration). {common.OUT_FOLDER_HELP}")  # fmt: skip
     add_reader_flags(c)
     common.add_config_flag(c, "calibrate")
 
@@ -348,8 +417,8 @@ def add_parsers(sub: Any, parent: argparse.ArgumentParser) -> None:
     )  # fmt: skip
     v.add_argument("--calibration", required=True, help="calibration.yaml written by dcc-fg calibrate")
     v.add_argument("--out", default="dcc_fg_validation", help="output folder for calibration.yaml (the held "
-                   "kinematics), joint_angles.csv (ns, rad) and summary.json; written only after a successful run "
-                   "(default ./dcc_fg_validation)")  # fmt: skip
+                   "kinematics), joint_angles.csv (ns, rad) and summary.json (default ./dcc_fg_validation); not the "
+                   f"folder of --calibration. {common.OUT_FOLDER_HELP}")  # fmt: skip
     add_reader_flags(v)
     common.add_config_flag(v, "validate")
 
@@ -357,12 +426,12 @@ def add_parsers(sub: Any, parent: argparse.ArgumentParser) -> None:
 def calibrate_command(args: argparse.Namespace) -> int:
     config = common.effective_config(args, CalibrateConfig, "calibrate")
     inputs = CalibrationInputs(args.data, camchain=args.camchain, target=args.target, gimbal=args.gimbal)
-    run_calibrate(inputs, Path(args.out), config, common.progress_wanted(args), args.quiet)
+    run_calibrate(inputs, Path(args.out), config, common.progress_wanted(args), args.quiet, args.config)
     return 0
 
 
 def validate_command(args: argparse.Namespace) -> int:
     config = common.effective_config(args, ValidateConfig, "validate")
     inputs = CalibrationInputs(args.data, camchain=args.camchain, target=args.target, calibration=args.calibration)
-    run_validate(inputs, Path(args.out), config, common.progress_wanted(args), args.quiet)
+    run_validate(inputs, Path(args.out), config, common.progress_wanted(args), args.quiet, args.config)
     return 0

@@ -9,14 +9,27 @@ turn it into options dataclasses here and pass those on.
 from __future__ import annotations
 
 import argparse
+import logging
 import sys
 from typing import Any, TypeVar
 
 from dcc_fg.util.config import apply_overrides, load_yaml_config
+from dcc_fg.util.health import HealthReport, UnhealthyResultError
 
 T = TypeVar("T")
 
 SUPPRESS = argparse.SUPPRESS
+
+log = logging.getLogger("dcc_fg.commands")
+
+#: How every result folder is written (the end of each ``--out`` help text).
+OUT_FOLDER_HELP = (
+    "Checked before any work: not a file, not an input or inside an input folder, not holding an input, not the "
+    "result folder of another command. The outputs are written into a hidden staging folder and moved into place "
+    "together only when the run succeeds (a failure or Ctrl-C leaves the folder as it was); the previous run's "
+    "outputs of this command in that folder (listed in its .dcc_fg_manifest.json) are removed, other files are "
+    "left alone"
+)
 
 
 def stderr_is_terminal() -> bool:
@@ -28,9 +41,7 @@ def verbosity_parent() -> argparse.ArgumentParser:
     """``-v/--verbose`` and ``-q/--quiet``, added to every subcommand."""
     p = argparse.ArgumentParser(add_help=False)
     g = p.add_argument_group("output verbosity")
-    g.add_argument(
-        "-v", "--verbose", action="count", default=0, help="more log messages (debug level); repeatable"
-    )
+    g.add_argument("-v", "--verbose", action="count", default=0, help="more log messages (debug level); repeatable")
     g.add_argument(
         "-q",
         "--quiet",
@@ -79,3 +90,20 @@ def effective_config(args: argparse.Namespace, cls: type[T], command: str) -> T:
 def progress_wanted(args: argparse.Namespace) -> bool:
     """A progress bar only on a terminal and without ``--quiet``."""
     return not getattr(args, "quiet", False) and stderr_is_terminal()
+
+
+def judge_health(report: HealthReport, accept: bool) -> dict[str, Any]:
+    """The ``health`` block of ``summary.json`` for ``report``.
+
+    An unhealthy report raises :class:`~dcc_fg.util.health.UnhealthyResultError` (nothing is written;
+    exit code 3) unless ``accept`` (``--accept-unhealthy``); then every failed check is logged as a
+    warning and the block says ``healthy: false`` with the reasons.
+    """
+    if not report.healthy:
+        if not accept:
+            raise UnhealthyResultError(report)
+        for check in report.failures:
+            hint = f" (try: {check.hint})" if check.hint else ""
+            log.warning("unhealthy %s accepted (--accept-unhealthy): %s: %s%s", report.subject, check.name,
+                        check.message, hint)  # fmt: skip
+    return report.to_dict()

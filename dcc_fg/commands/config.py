@@ -13,7 +13,7 @@ from typing import Any
 from dcc_fg.commands import common
 from dcc_fg.commands.calibrate import CalibrateConfig, ValidateConfig
 from dcc_fg.commands.vio import VioConfig, check_config, config_text_vio
-from dcc_fg.io.outputs import write_text_atomic
+from dcc_fg.io.output_set import OutputFiles
 from dcc_fg.util.config import dump_yaml, load_yaml_config
 from dcc_fg.util.provenance import package_version
 
@@ -44,13 +44,14 @@ def config_text(command: str, source: Path | None = None) -> str:
 
 
 def config_command(args: argparse.Namespace) -> int:
+    outputs = OutputFiles({"--out": args.out}, {"--from": args.source}) if args.out else None
+    if args.out and Path(args.out).exists() and not args.force:
+        raise ValueError(f"{args.out}: exists; choose another name or pass --force")
     text = config_text(args.print, Path(args.source) if args.source else None)
-    if args.out:
-        out = Path(args.out)
-        if out.exists() and not args.force:
-            raise ValueError(f"{out}: exists; choose another name or pass --force")
-        write_text_atomic(out, text)
-        print(f"wrote {out}")
+    if outputs is not None:
+        with outputs:
+            outputs["--out"].write_text(text, encoding="utf-8")
+        print(f"wrote {args.out}")
     else:
         print(text, end="")
     return 0
@@ -60,5 +61,5 @@ def add_parser(sub: Any, parent: argparse.ArgumentParser) -> None:
     c = common.add_command(sub, "config", parent, CONFIG_SUMMARY, CONFIG_DESCRIPTION, config_command)
     c.add_argument("--print", required=True, choices=sorted(CONFIGS), help="the command whose options to print")
     c.add_argument("--from", dest="source", metavar="SUMMARY_JSON", help="take the options of an earlier run")
-    c.add_argument("--out", help="write to this file instead of standard output")
+    c.add_argument("--out", help="write to this file instead of standard output (not a folder, not the --from file)")
     c.add_argument("--force", action="store_true", help="replace --out if it exists")

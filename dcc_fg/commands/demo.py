@@ -38,7 +38,9 @@ def demo_command(args: argparse.Namespace) -> int:
 
 def add_parser(sub: Any, parent: argparse.ArgumentParser) -> None:
     d = common.add_command(sub, "demo", parent, DEMO_SUMMARY, DEMO_DESCRIPTION, demo_command)
-    d.add_argument("--out", default="dcc_fg_demo", help="output folder (default: ./dcc_fg_demo)")
+    d.add_argument(
+        "--out", default="dcc_fg_demo", help=f"output folder (default: ./dcc_fg_demo). {common.OUT_FOLDER_HELP}"
+    )
     d.add_argument("--seed", type=int, default=0, help="random seed of the simulation (default 0)")
     d.add_argument("--joints", type=int, default=2, choices=[0, 1, 2, 3], help="number of gimbal joints L (default 2)")
     d.add_argument("--report", action="store_true", help="also write OUT/report.pdf (tables and figures)")

@@ -1,4 +1,10 @@
-"""``dcc-fg evaluate OUT --ground-truth GT``: score a VIO run against ground truth (Tables IV-V)."""
+"""``dcc-fg evaluate OUT --ground-truth GT``: score a VIO run against ground truth (Tables IV-V).
+
+The evaluation (``OUT/evaluation.json``) and its figures (``OUT/vio_*.png``) are written as one set
+attached to the ``vio`` result folder OUT (:class:`~dcc_fg.io.output_set.OutputSet` with command
+``evaluate``): the previous evaluation's files are replaced together, nothing is written when the
+evaluation fails, and a new ``dcc-fg vio`` run into OUT removes them (they would be stale).
+"""
 
 from __future__ import annotations
 
@@ -7,30 +13,62 @@ from pathlib import Path
 from typing import Any
 
 from dcc_fg.commands import common
+from dcc_fg.io.output_set import OutputSet
+from dcc_fg.io.outputs import read_joint_angles_csv, write_json
+from dcc_fg.io.tum import read_tum
 from dcc_fg.plots.vio_output import write_vio_figures
-from dcc_fg.vio.evaluate import evaluate_output, format_evaluation
+from dcc_fg.vio.evaluate import (
+    evaluate_trajectory,
+    format_evaluation,
+    joint_rmse,
+    load_ground_truth,
+    output_mode_and_alignment,
+)
 
 EVALUATE_SUMMARY = "score a VIO run (trajectory.tum, joint_angles.csv) against ground truth"
 EVALUATE_DESCRIPTION = (
     "APE/RPE with evo (SE(3) alignment; Sim(3) for mono runs), normalized translation RMSE (%% of "
     "distance) and rotation RMSE (rad/m) as in the paper's Table IV, joint-angle RMSE per joint (Table V). "
-    "Writes OUT/evaluation.json."
+    "Writes OUT/evaluation.json and the figures OUT/vio_*.png together, replacing those of an earlier evaluation."
 )
+
+
+def evaluation(out: Path, ground_truth: Path, align: str = "auto") -> dict[str, Any]:
+    """The content of ``evaluation.json`` for the VIO output folder ``out`` (what
+    :func:`dcc_fg.vio.evaluate.evaluate_output` computes, without writing)."""
+    mode, align = output_mode_and_alignment(out, align)
+    gt = load_ground_truth(ground_truth)
+    t, T = read_tum(out / "trajectory.tum")
+    result = {"mode": mode, "ground_truth": str(ground_truth), **evaluate_trajectory(t, T, gt, align)}
+    joints_csv = out / "joint_angles.csv"
+    if joints_csv.is_file() and mode != "mono":
+        jt, theta = read_joint_angles_csv(joints_csv)
+        rmse = joint_rmse(jt, theta, gt)
+        if rmse is not None:
+            result["joint_rmse_rad"] = rmse
+    return result
 
 
 def evaluate_command(args: argparse.Namespace) -> int:
     out = Path(args.out)
-    result = evaluate_output(out, Path(args.ground_truth), align=args.align)
+    outputs = OutputSet(out, "evaluate", {"--ground-truth": args.ground_truth}, option="OUT")
+    with outputs:
+        result = evaluation(out, Path(args.ground_truth), args.align)
+        write_json(outputs.path / "evaluation.json", result)
+        saved = write_vio_figures(out, Path(args.ground_truth), align=result["alignment"], figure_dir=outputs.path)
     print(format_evaluation(result))
-    saved = write_vio_figures(out, Path(args.ground_truth), align=result["alignment"])
-    for path in saved.paths.values():
+    for path in [out / "evaluation.json", *(outputs.final(p) for p in saved.paths.values())]:
         print(f"wrote {path}")
     return 0
 
 
 def add_parser(sub: Any, parent: argparse.ArgumentParser) -> None:
     e = common.add_command(sub, "evaluate", parent, EVALUATE_SUMMARY, EVALUATE_DESCRIPTION, evaluate_command)
-    e.add_argument("out", help="output folder of dcc-fg vio (trajectory.tum, summary.json, joint_angles.csv)")
+    e.add_argument(
+        "out",
+        help="output folder of dcc-fg vio (trajectory.tum, summary.json, joint_angles.csv); evaluation.json and "
+        "vio_*.png are written into it together, only when the evaluation succeeds",
+    )
     e.add_argument(
         "--ground-truth",
         required=True,

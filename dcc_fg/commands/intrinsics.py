@@ -8,7 +8,9 @@ from pathlib import Path
 from typing import Any
 
 from dcc_fg.commands import common
-from dcc_fg.intrinsics import intrinsics_table, run_intrinsics
+from dcc_fg.intrinsics import intrinsics_table, run_intrinsics, write_intrinsics_camchain
+from dcc_fg.io.bags import is_bag
+from dcc_fg.io.output_set import OutputFiles
 from dcc_fg.io.outputs import write_json
 from dcc_fg.targets import load_target
 from dcc_fg.util.provenance import run_record
@@ -35,17 +37,24 @@ class IntrinsicsOptions:
 
 
 def intrinsics_command(args: argparse.Namespace) -> int:
+    """Check the inputs and both output files, calibrate, then write ``--out`` (and ``--summary``)
+    together: temporary files renamed into place only when everything succeeded."""
     if not Path(args.target).is_file():
         raise ValueError(f"{args.target}: target file not found")
+    outputs = OutputFiles({"--out": args.out, "--summary": args.summary}, {"DATA": args.data, "--target": args.target})
     options = IntrinsicsOptions(
         args.camera, args.model, args.topic, args.every, args.max_views, args.min_corners, args.max_rms
     )
     target = load_target(args.target)
-    result = run_intrinsics(args.data, target, out=args.out, progress=common.progress_wanted(args), **asdict(options))
+    with outputs:
+        result = run_intrinsics(args.data, target, out=None, progress=common.progress_wanted(args), **asdict(options))
+        bag_topic = (args.topic or f"/{args.camera}/image_raw") if is_bag(Path(args.data)) else None
+        outputs.seed("--out")  # an existing camchain keeps its other cameras
+        write_intrinsics_camchain(outputs["--out"], args.camera, result, bag_topic)
+        if args.summary:
+            provenance = run_record("intrinsics", {"data": args.data, "target": args.target}, options)
+            write_json(outputs["--summary"], {**provenance, **result.summary()})
     print(intrinsics_table(result))
-    if args.summary:
-        provenance = run_record("intrinsics", {"data": args.data, "target": args.target}, options)
-        write_json(Path(args.summary), {**provenance, **result.summary()})
     print(f"wrote {args.out}" + (f", {args.summary}" if args.summary else ""))
     return 0
 
@@ -68,5 +77,7 @@ def add_parser(sub: Any, parent: argparse.ArgumentParser) -> None:
     i.add_argument(
         "--max-rms", type=float, default=2.0, help="refuse results with a larger RMS reprojection error (px, default 2)"
     )
-    i.add_argument("--out", default="camchain.yaml", help="camchain YAML to write or update (default camchain.yaml)")
+    i.add_argument("--out", default="camchain.yaml", help="camchain YAML to write or update (default camchain.yaml; "
+                   "its other cameras are kept). Checked before any work (not a folder, not an input); written "
+                   "together with --summary only when the calibration succeeds")  # fmt: skip
     i.add_argument("--summary", help="optional JSON file with the parameters, 1-sigma and reprojection error")

@@ -32,11 +32,18 @@ FLIGHT_DESCRIPTION = (
 )
 
 
+SIMULATE_OUT_HELP = (
+    "It must not already hold a data set (any of the names this command writes) unless --force, nor be the result "
+    "folder of another command. Everything is written into a hidden staging folder and moved into place together "
+    "when complete: an error or Ctrl-C leaves the folder as it was"
+)
+
+
 def simulate_calibration_command(args: argparse.Namespace) -> int:
     """``dcc-fg simulate calibration``."""
     render = RenderConfig(noise_sigma=args.noise, blur_sigma_px=args.blur)
     spec = CalibrationSimSpec(args.target, args.format, args.seed, args.snapshots, args.joints, render, args.storage)
-    res = write_calibration_dataset(args.out, spec)
+    res = write_calibration_dataset(args.out, spec, force=args.force)
     print(
         f"rendered {len(res.T_st)} image pairs in {res.render_time_s:.1f} s: {res.data}\n"
         f"wrote {res.camchain}, {res.target}, {res.gimbal}, {res.ground_truth}\n"
@@ -53,7 +60,14 @@ def simulate_flight_command(args: argparse.Namespace) -> int:
     config = FlightConfig.short(args.duration) if args.duration is not None else FlightConfig()
     joints = locked_gimbal() if args.gimbal == "locked" else None
     res = write_flight(
-        args.out, args.format, config, seed=args.seed, scale=args.scale, joints=joints, progress=not args.quiet
+        args.out,
+        args.format,
+        config,
+        seed=args.seed,
+        scale=args.scale,
+        joints=joints,
+        progress=not args.quiet,
+        force=args.force,
     )
     print(
         f"wrote {res.bag} ({res.frames} frame pairs, {res.truth.distance:.1f} m, "
@@ -84,7 +98,9 @@ def add_calibration_parser(sub: Any, parent: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--storage", choices=["sqlite3", "mcap"], default="sqlite3", help="ROS2 bag storage (default sqlite3)"
     )
-    p.add_argument("--out", required=True, help="output folder (created; must not already hold the image data)")
+    p.add_argument("--out", required=True, help=f"output folder (created). {SIMULATE_OUT_HELP}")
+    p.add_argument("--force", action="store_true", help="replace the data set an earlier 'simulate calibration' "
+                   "wrote into --out")  # fmt: skip
     p.add_argument("--seed", type=int, default=0, help="random seed of the scene and the image noise (default 0)")
     p.add_argument("--snapshots", type=int, default=81, help="number of image pairs (snapshots), default 81")
     p.add_argument("--joints", type=int, default=2, choices=[0, 1, 2, 3], help="number of gimbal joints L (default 2)")
@@ -98,7 +114,9 @@ def add_calibration_parser(sub: Any, parent: argparse.ArgumentParser) -> None:
 
 def add_flight_parser(sub: Any, parent: argparse.ArgumentParser) -> None:
     f = common.add_command(sub, "flight", parent, FLIGHT_SUMMARY, FLIGHT_DESCRIPTION, simulate_flight_command)
-    f.add_argument("--out", required=True, help="output folder")
+    f.add_argument("--out", required=True, help=f"output folder (created). {SIMULATE_OUT_HELP}")
+    f.add_argument("--force", action="store_true", help="replace the flight an earlier 'simulate flight' wrote "
+                   "into --out")  # fmt: skip
     f.add_argument("--format", default="ros2", choices=["ros1", "ros2"], help="bag format (default ros2)")
     f.add_argument("--duration", type=float, help="one short loop (16 m x 8 m) flown in this many seconds")
     f.add_argument(

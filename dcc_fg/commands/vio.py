@@ -25,11 +25,13 @@ from tqdm import tqdm
 
 from dcc_fg.commands import common
 from dcc_fg.data.vio import ImuConfig, load_imu_config
+from dcc_fg.io.output_set import OutputSet
 from dcc_fg.model import GimbalCalibration, load_calibration
 from dcc_fg.util.config import ConfigError, from_dict, to_plain
 from dcc_fg.util.provenance import run_record
 from dcc_fg.vio.backend import VioOptions, write_vio_outputs
 from dcc_fg.vio.frontend import FrontendConfig
+from dcc_fg.vio.health import vio_health
 from dcc_fg.vio.pipeline import BagTopics, PipelineOptions, run_vio_bag
 
 #: Kalibr imu.yaml keys -> ImuConfig fields
@@ -76,8 +78,6 @@ def camchain_T_sI(camchain: Path) -> np.ndarray:
     return T
 
 
-
-
 @dataclass
 class VioRunOptions:
     """Options of a ``dcc-fg vio`` run that are not smoother or front-end parameters.
@@ -113,6 +113,14 @@ class TopicOptions:
     dynamic: str = "/cam1/image_raw"
 
 
+@dataclass
+class VioOutputOptions:
+    """``accept_unhealthy``: write a trajectory that failed its health checks (marked ``health.healthy:
+    false`` in ``summary.json``) instead of refusing it."""
+
+    accept_unhealthy: bool = False
+
+
 #: VioOptions fields a config may not set: they are computed from other options.
 DERIVED_SMOOTHER_FIELDS = {"sigma": "run.pixel_sigma (pixels; sigma = pixel_sigma / focal length)"}
 
@@ -130,6 +138,7 @@ class VioConfig:
     topics: TopicOptions = field(default_factory=TopicOptions)
     smoother: VioOptions = field(default_factory=lambda: VioOptions(keyframe_every=3))
     frontend: dict[str, Any] = field(default_factory=dict)
+    output: VioOutputOptions = field(default_factory=VioOutputOptions)
 
 
 def check_config(config: VioConfig, where: str) -> None:
@@ -167,6 +176,16 @@ class VioInputs:
 
     def paths(self) -> dict[str, str | None]:
         return dataclasses.asdict(self)
+
+    def by_option(self, config_file: str | Path | None = None) -> dict[str, str | Path | None]:
+        """The input paths by the option that gave them (``--config`` included), for the output checks."""
+        return {
+            "BAG": self.bag,
+            "--calibration": self.calibration,
+            "--imu-yaml": self.imu_yaml,
+            "--camchain": self.camchain,
+            "--config": config_file,
+        }
 
 
 def imu_config(inputs: VioInputs) -> ImuConfig:
@@ -249,15 +268,23 @@ def run_vio(
     progress: bool = False,
     quiet: bool = False,
     config_source: str = "options",
+    config_file: str | Path | None = None,
 ) -> Any:
     """Validate the inputs and options, run the VIO over ``inputs.bag`` and write ``out``; returns the
-    VioResult. ``config_source`` names where the options came from in error messages."""
+    VioResult. ``config_source`` names where the options came from in error messages; ``config_file``
+    (the ``--config`` file) is protected like the inputs.
+
+    ``out`` is written as one output set (:class:`~dcc_fg.io.output_set.OutputSet`): checked before any
+    work, written only when the run succeeds and its trajectory passes the health checks
+    (:func:`~dcc_fg.vio.health.vio_health`; ``config.output.accept_unhealthy`` writes it anyway, marked
+    ``health.healthy: false``)."""
     check_config(config, config_source)
     cal_path, bag = Path(inputs.calibration), Path(inputs.bag)
     if not cal_path.is_file():
         raise FileNotFoundError(f"{cal_path}: calibration file not found")
     if not bag.exists():
         raise FileNotFoundError(f"{bag}: bag not found")
+    outputs = OutputSet(out, "vio", inputs.by_option(config_file))
     cal = load_calibration(cal_path)
     imu = imu_config(inputs)
     options = smoother_options(config, cal, cal_path)
@@ -270,15 +297,19 @@ def run_vio(
         worker=config.run.frontend_worker,
         frontend=frontend_config(config, cal),
     )
-    bar = ProgressBar(progress)
-    try:
-        result, run = run_vio_bag(bag, cal, imu, options, topics, pipeline, progress=bar if progress else None)
-    finally:
-        bar.close()
-    provenance = run_record("vio", inputs.paths(), config)
-    provenance["options"] = config_text_vio(config)
-    provenance["effective_options"] = {"smoother": to_plain(options), "pipeline": to_plain(pipeline)}
-    write_vio_outputs(out, result, {**provenance, "calibration": str(cal_path), "run": run})
+    with outputs:
+        bar = ProgressBar(progress)
+        try:
+            result, run = run_vio_bag(bag, cal, imu, options, topics, pipeline, progress=bar if progress else None)
+        finally:
+            bar.close()
+        health = common.judge_health(vio_health(result, imu, options), config.output.accept_unhealthy)
+        provenance = run_record("vio", inputs.paths(), config)
+        provenance["options"] = config_text_vio(config)
+        provenance["effective_options"] = {"smoother": to_plain(options), "pipeline": to_plain(pipeline)}
+        write_vio_outputs(
+            outputs.path, result, {**provenance, "calibration": str(cal_path), "run": run, "health": health}
+        )
     if not quiet:
         print_vio_summary(result, out, cal.n_joints)
     return result
@@ -305,7 +336,7 @@ def vio_command(args: argparse.Namespace) -> int:
     config = common.effective_config(args, VioConfig, "vio")
     inputs = VioInputs(args.bag, args.calibration, args.imu_yaml, args.camchain)
     source = args.config or "command line"
-    run_vio(inputs, Path(args.out), config, common.progress_wanted(args), args.quiet, source)
+    run_vio(inputs, Path(args.out), config, common.progress_wanted(args), args.quiet, source, args.config)
     return 0
 
 
@@ -326,7 +357,8 @@ def add_parser(sub: Any, parent: argparse.ArgumentParser) -> None:
     v.add_argument("--imu-yaml", help="Kalibr imu.yaml: noise densities (m/s^2/sqrt(Hz), rad/s/sqrt(Hz)), random walks")
     v.add_argument("--camchain", help="Kalibr camchain-imucam.yaml: takes T_sI from cam0.T_cam_imu")
     add_vio_flags(v)
-    v.add_argument("--out", required=True, help="output folder")
+    v.add_argument("--out", required=True, help="output folder for trajectory.tum, joint_angles.csv and "
+                   f"summary.json. {common.OUT_FOLDER_HELP}")  # fmt: skip
     common.add_config_flag(v, "vio")
 
 
@@ -347,6 +379,9 @@ def add_vio_flags(v: argparse.ArgumentParser) -> None:
     opt(v, "--lag", "smoother.lag", type=float, help="smoother window, seconds (default 1.5)")
     opt(v, "--sync-tolerance", "run.sync_tolerance_ms", type=float, metavar="MS",
         help="image pairing tolerance, ms (default 5)")  # fmt: skip
+    opt(v, "--accept-unhealthy", "output.accept_unhealthy", action="store_true", help="write a trajectory that "
+        "failed its health checks (divergence, covariance blow-up, vision unused) instead of refusing it with exit "
+        "code 3; summary.json then says health: healthy: false, with the reasons")  # fmt: skip
     opt(v, "--no-dynamic-rejection", "run.dynamic_rejection", action="store_false", help="keep every gimbal-camera "
         "track (skip the second stage of the two-stage outlier handling)")  # fmt: skip
     opt(v, "--frontend", "run.frontend_worker", choices=["auto", "inline", "process"], help="run the feature tracking "

@@ -33,6 +33,7 @@ from tqdm import tqdm
 
 from dcc_fg.data.vio import ImuConfig, load_imu_config
 from dcc_fg.io.bag_writer import BagWriter, joint_names
+from dcc_fg.io.output_set import OutputSet
 from dcc_fg.io.outputs import write_joint_angles_csv, write_text_atomic
 from dcc_fg.io.tum import write_tum
 from dcc_fg.model import GimbalCalibration, load_calibration
@@ -173,11 +174,17 @@ def write_flight(
     joints: JointMotion | None = None,
     imu: ImuConfig | None = None,
     progress: bool = False,
+    force: bool = False,
 ) -> FlightBag:
     """Simulate, render and write a flight (see the module docstring).
 
+    The files are written as one output set (:class:`~dcc_fg.io.output_set.OutputSet`, command
+    ``simulate flight``): into a staging folder, moved into ``out`` only when everything is written
+    (an interrupted rendering leaves ``out`` as it was).
+
     Args:
-        out: output folder (created).
+        out: output folder (created). It must not hold any of the flight's names (``flight``,
+            ``calibration.yaml``, ...) nor be another command's result folder.
         fmt: ``ros1`` (``flight.bag``) or ``ros2`` (``flight/``).
         config: flight pattern (default: the paper's two loops, 90 s).
         seed: seeds the IMU noise, the textures and the image noise.
@@ -185,6 +192,7 @@ def write_flight(
         noise_sigma: image noise, grey levels (1 sigma).
         joints, imu: gimbal motion and IMU noise (defaults of :mod:`dcc_fg.sim.trajectory`).
         progress: show a tqdm progress bar.
+        force: replace a flight written earlier into ``out`` by ``simulate flight``.
     """
     if fmt not in ("ros1", "ros2"):
         raise ValueError(f"format must be ros1 or ros2, got {fmt!r}")
@@ -192,7 +200,8 @@ def write_flight(
         raise ValueError(f"scale must be within [0.1, 2], got {scale}")
     t_start = time.perf_counter()
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    outputs = OutputSet(out, "simulate flight", replace_previous=force, replace_hint="pass --force to replace the "
+                        "flight simulated there before")  # fmt: skip
     config = config or FlightConfig()
     T_sI = default_static_mount()
     imu = dataclasses.replace(imu or ImuConfig(), T_sI=T_sI)
@@ -200,16 +209,18 @@ def write_flight(
     cal = scaled_flight_calibration(scale)
     renderer = WorldRenderer(planes_from_world(World.around(config)), seed=seed)
     frames = render_flight(renderer, truth, cal, T_sI, noise_sigma=noise_sigma, seed=seed + 1)
-    bag_path = out / ("flight.bag" if fmt == "ros1" else "flight")
-    n_frames, render_s = _write_flight_bag(bag_path, fmt, truth, frames, progress)
-    cal_path = out / "calibration.yaml"
-    d = _calibration_yaml(cal, imu, truth, config, seed, scale)
-    write_text_atomic(cal_path, yaml.safe_dump(d, sort_keys=False))
-    gt_path = out / "ground_truth.tum"
-    write_tum(gt_path, truth.t_ns + START_NS, truth.T_WI, TUM_COMMENT, quaternion_decimals=12, w_nonnegative=True)
-    joints_path = out / "ground_truth_joints.csv"
-    idx = truth.index_of(truth.frame_t_ns)
-    write_joint_angles_csv(joints_path, truth.frame_t_ns + START_NS, truth.theta[idx])
+    names = ("flight.bag" if fmt == "ros1" else "flight", "calibration.yaml", "ground_truth.tum",
+             "ground_truth_joints.csv")  # fmt: skip
+    with outputs:
+        stage = outputs.path
+        n_frames, render_s = _write_flight_bag(stage / names[0], fmt, truth, frames, progress)
+        d = _calibration_yaml(cal, imu, truth, config, seed, scale)
+        write_text_atomic(stage / names[1], yaml.safe_dump(d, sort_keys=False))
+        write_tum(stage / names[2], truth.t_ns + START_NS, truth.T_WI, TUM_COMMENT, quaternion_decimals=12,
+                  w_nonnegative=True)  # fmt: skip
+        idx = truth.index_of(truth.frame_t_ns)
+        write_joint_angles_csv(stage / names[3], truth.frame_t_ns + START_NS, truth.theta[idx])
+    bag_path, cal_path, gt_path, joints_path = (out / n for n in names)
     return FlightBag(
         bag=bag_path,
         calibration=cal_path,

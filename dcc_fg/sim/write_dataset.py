@@ -53,6 +53,7 @@ from numpy.typing import NDArray
 from dcc_fg.io.bag_writer import write_ros1_bag, write_ros2_bag
 from dcc_fg.io.camchain import CamchainEntry, camchain_to_yaml
 from dcc_fg.io.folders import FramePair, write_image_folder
+from dcc_fg.io.output_set import OutputSet
 from dcc_fg.io.outputs import write_text_atomic
 from dcc_fg.model import GimbalCalibration
 from dcc_fg.sim.calibration_scene import SceneConfig, SimulatedCalibration, simulate_calibration
@@ -216,16 +217,23 @@ def _ground_truth_dict(
     }
 
 
-def write_calibration_dataset(out: str | Path, spec: CalibrationSimSpec | None = None) -> RenderedCalibration:
+def write_calibration_dataset(
+    out: str | Path, spec: CalibrationSimSpec | None = None, force: bool = False
+) -> RenderedCalibration:
     """Simulate, render and write a calibration data set (layout in the module docstring).
 
+    The files are written as one output set (:class:`~dcc_fg.io.output_set.OutputSet`, command
+    ``simulate calibration``): into a staging folder, moved into ``out`` only when everything is written.
+
     Args:
-        out: output folder (created; the data path inside it must not exist yet).
+        out: output folder (created). It must not hold any of the data set's names (``images``,
+            ``camchain.yaml``, ...) nor be another command's result folder.
         spec: what to simulate and write (default :class:`CalibrationSimSpec`: 81 checkerboard
             image pairs of the 2-joint scene in an image folder, seed 0).
+        force: replace a data set written earlier into ``out`` by ``simulate calibration``.
 
     Raises:
-        ValueError: unknown target/format, or the data path already exists.
+        ValueError: unknown target/format, or ``out`` already holds a data set (without ``force``).
     """
     spec = spec or CalibrationSimSpec()
     if spec.fmt not in DATA_NAMES:
@@ -233,31 +241,33 @@ def write_calibration_dataset(out: str | Path, spec: CalibrationSimSpec | None =
     if spec.n_snapshots < 1:
         raise ValueError(f"--snapshots must be >= 1, got {spec.n_snapshots}")
     out = Path(out)
-    data = out / DATA_NAMES[spec.fmt]
-    if data.exists():
-        raise ValueError(f"{data}: already exists; choose an empty --out folder")
+    outputs = OutputSet(out, "simulate calibration", replace_previous=force, replace_hint="pass --force to replace "
+                        "the data set simulated there before")  # fmt: skip
     tg = default_target(spec.target)
     sim = simulate_calibration(spec.seed, scene_config(tg, spec.n_snapshots, spec.n_joints))
     T_st = _rendered_poses(sim)
     rng = np.random.default_rng([spec.seed, 1])  # image noise, independent of the scene's stream
-    out.mkdir(parents=True, exist_ok=True)
+    with outputs:
+        stage = outputs.path
+        data = stage / DATA_NAMES[spec.fmt]
+        t0 = time.perf_counter()
+        _write_images(data, _frames(sim, T_st, spec.render, rng), spec)
+        render_time = time.perf_counter() - t0
 
-    t0 = time.perf_counter()
-    _write_images(data, _frames(sim, T_st, spec.render, rng), spec)
-    render_time = time.perf_counter() - t0
-
-    cams = (sim.truth.static_camera, sim.truth.dynamic_camera)
-    assert cams[0] is not None and cams[1] is not None
-    paths = {name: out / f"{name}.yaml" for name in ("camchain", "target", "gimbal", "ground_truth")}
-    entries = {"cam0": CamchainEntry(cams[0], STATIC_TOPIC), "cam1": CamchainEntry(cams[1], DYNAMIC_TOPIC)}
-    write_text_atomic(paths["camchain"], camchain_to_yaml(entries))
-    write_text_atomic(paths["target"], yaml.safe_dump(tg.to_kalibr(), sort_keys=False))
-    write_text_atomic(paths["gimbal"], yaml.safe_dump(_kinematics_dict(sim.initial), sort_keys=False))
-    truth = _ground_truth_dict(sim, T_st, spec, data)
-    write_text_atomic(paths["ground_truth"], yaml.safe_dump(truth, sort_keys=False))
+        cams = (sim.truth.static_camera, sim.truth.dynamic_camera)
+        assert cams[0] is not None and cams[1] is not None
+        paths = {name: stage / f"{name}.yaml" for name in ("camchain", "target", "gimbal", "ground_truth")}
+        entries = {"cam0": CamchainEntry(cams[0], STATIC_TOPIC), "cam1": CamchainEntry(cams[1], DYNAMIC_TOPIC)}
+        write_text_atomic(paths["camchain"], camchain_to_yaml(entries))
+        write_text_atomic(paths["target"], yaml.safe_dump(tg.to_kalibr(), sort_keys=False))
+        write_text_atomic(paths["gimbal"], yaml.safe_dump(_kinematics_dict(sim.initial), sort_keys=False))
+        truth = _ground_truth_dict(sim, T_st, spec, data)
+        write_text_atomic(paths["ground_truth"], yaml.safe_dump(truth, sort_keys=False))
+    final = {name: out / p.name for name, p in paths.items()}
     return RenderedCalibration(
-        sim, data, paths["camchain"], paths["target"], paths["gimbal"], paths["ground_truth"], T_st, render_time
-    )
+        sim, out / data.name, final["camchain"], final["target"], final["gimbal"], final["ground_truth"], T_st,
+        render_time,
+    )  # fmt: skip
 
 
 @dataclass
