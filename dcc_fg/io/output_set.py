@@ -317,10 +317,12 @@ class OutputSet:
         inputs: option or role -> input path (files or folders; None entries are skipped). For an
             attached command (``evaluate``) an input inside OUT is refused only when the set would
             replace it.
-        replace_previous: False: refuse a folder that already holds outputs of ``command`` (a previous run,
-            or any entry with one of its output names); True: replace the previous run's outputs.
+        replace_previous: False: refuse a folder that already holds the outputs of an earlier run of
+            ``command``; True: replace them.
         replace_hint: what to say in that refusal (e.g. ``pass --force``).
         option: the option name used in messages.
+        replace_unowned: True: a file of the user that has the name of a new output is replaced (a folder
+            never is); False: such a name (one of :data:`KNOWN_OUTPUTS`, or met at the commit) is refused.
 
     Raises:
         OutputPathError: OUT cannot be used (before any work; nothing is touched).
@@ -334,12 +336,14 @@ class OutputSet:
         replace_previous: bool = True,
         replace_hint: str = "",
         option: str = "--out",
+        replace_unowned: bool = True,
     ) -> None:
         self.out = Path(out)
         self.command = command
         self.inputs = dict(inputs or {})
         self.replace_previous = replace_previous
         self.replace_hint = replace_hint
+        self.replace_unowned = replace_unowned
         self.option = option
         self.attach_to = ATTACHED_TO.get(command)
         self.staging: Path | None = None
@@ -379,15 +383,16 @@ class OutputSet:
                 f"{opt} {out}: is the result folder of 'dcc-fg {owner.command}' (per {owner.evidence}); writing "
                 f"'dcc-fg {self.command}' outputs there would mix two results; choose another {opt} folder"
             )
-        if not self.replace_previous:
-            existing = owner.entries if owner.command == self.command else ()
-            existing = existing or _known(out, self.command)
-            if existing:
-                hint = f" or {self.replace_hint}" if self.replace_hint else ""
-                raise OutputPathError(
-                    f"{out / existing[0]}: already exists; choose an empty {opt} folder{hint}"
-                    + ("" if owner.command == self.command else f" (it was not written by dcc-fg {self.command})")
-                )
+        owned = owner.entries if owner.command == self.command else ()
+        if not self.replace_previous and owned:
+            hint = f" or {self.replace_hint}" if self.replace_hint else ""
+            raise OutputPathError(f"{out / owned[0]}: already exists (written by dcc-fg {self.command}); choose an "
+                                  f"empty {opt} folder{hint}")  # fmt: skip
+        if not self.replace_unowned:
+            clash = [n for n in _known(out, self.command) if n not in owned]
+            if clash:
+                raise OutputPathError(f"{out / clash[0]}: already exists and was not written by dcc-fg "
+                                      f"{self.command}; it is left alone: choose an empty {opt} folder")  # fmt: skip
         return owner
 
     def _check_attached_inputs(self) -> None:
@@ -514,10 +519,11 @@ class OutputSet:
             previous = set(owner.attached.get(self.command, ()))
         for name in entries:
             dest = self.out / name
-            if name not in previous and os.path.lexists(dest) and dest.is_dir() and not dest.is_symlink():
+            unowned = name not in previous and os.path.lexists(dest)
+            if unowned and (not self.replace_unowned or (dest.is_dir() and not dest.is_symlink())):
                 raise OutputPathError(
-                    f"{dest}: a folder that was not written by dcc-fg {self.command}; it is left alone, so the outputs "
-                    f"cannot be written; move it or choose another {self.option}"
+                    f"{dest}: already exists and was not written by dcc-fg {self.command}; it is left alone, so the "
+                    f"outputs cannot be written; move it or choose another {self.option}"
                 )
         manifest_text = json.dumps(self.manifest(entries, owner), indent=2) + "\n"
         with DeferredInterrupt():

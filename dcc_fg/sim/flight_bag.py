@@ -200,8 +200,13 @@ def write_flight(
         raise ValueError(f"scale must be within [0.1, 2], got {scale}")
     t_start = time.perf_counter()
     out = Path(out)
-    outputs = OutputSet(out, "simulate flight", replace_previous=force, replace_hint="pass --force to replace the "
-                        "flight simulated there before")  # fmt: skip
+    outputs = OutputSet(
+        out,
+        "simulate flight",
+        replace_previous=force,
+        replace_hint="pass --force to replace the flight simulated there before",
+        replace_unowned=False,
+    )
     config = config or FlightConfig()
     T_sI = default_static_mount()
     imu = dataclasses.replace(imu or ImuConfig(), T_sI=T_sI)

@@ -241,8 +241,13 @@ def write_calibration_dataset(
     if spec.n_snapshots < 1:
         raise ValueError(f"--snapshots must be >= 1, got {spec.n_snapshots}")
     out = Path(out)
-    outputs = OutputSet(out, "simulate calibration", replace_previous=force, replace_hint="pass --force to replace "
-                        "the data set simulated there before")  # fmt: skip
+    outputs = OutputSet(
+        out,
+        "simulate calibration",
+        replace_previous=force,
+        replace_hint="pass --force to replace the data set simulated there before",
+        replace_unowned=False,
+    )
     tg = default_target(spec.target)
     sim = simulate_calibration(spec.seed, scene_config(tg, spec.n_snapshots, spec.n_joints))
     T_st = _rendered_poses(sim)
