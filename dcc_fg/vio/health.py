@@ -1,15 +1,190 @@
 """Health checks of a VIO result (see :mod:`dcc_fg.util.health`).
 
-Placeholder: filled in by the VIO-health work of issue 13.
+:func:`vio_health` judges a finished run from its keyframe states and the recovery record the
+smoother keeps in ``result.stats`` (:class:`~dcc_fg.vio.backend.smoother.VioSmoother`). Checks and
+their thresholds (``options``: :class:`~dcc_fg.vio.backend.options.VioOptions`; ``imu``:
+:class:`~dcc_fg.data.vio.ImuConfig`):
+
+* ``keyframes``: at least ``min_track_keyframes`` keyframes (fewer cannot triangulate a landmark);
+* ``finite``: every pose, velocity, bias and joint angle finite;
+* ``speed``: every keyframe speed within ``max_speed`` (m/s);
+* ``position_jumps``: within each trajectory segment, the distance between consecutive keyframes
+  within what the previous speed and the IMU's acceleration range allow in the elapsed time
+  (:func:`~dcc_fg.vio.backend.divergence.max_jump`);
+* ``divergences``: every divergence / failed update detected during the run was followed by a
+  segment that lasted at least one smoother window (``lag``) without diverging again;
+* ``velocity_covariance``: the final keyframe's velocity 1-sigma within ``max_velocity_sigma``;
+* ``vision``: the longest stretch of keyframes without any visual factor (landmark observation or
+  zero-velocity update) no longer than the smoother window ``lag``: beyond it the trajectory is
+  IMU dead reckoning (an IMU clock offset or rate problem, a camera facing nothing, ...);
+* ``segments`` (always passes, informative): how many trajectory segments the run has.
+
+Frames and units: ``T_WI`` body/IMU -> world, m, m/s, s.
 """
 
 from __future__ import annotations
 
+from typing import Any
+
+import numpy as np
+
 from dcc_fg.data.vio import ImuConfig
-from dcc_fg.util.health import HealthReport
-from dcc_fg.vio.backend.options import VioOptions, VioResult
+from dcc_fg.util.health import HealthCheck, HealthReport
+from dcc_fg.vio.backend.divergence import DivergenceLimits, max_jump, state_is_finite
+from dcc_fg.vio.backend.options import NS, VioOptions, VioResult
+from dcc_fg.vio.backend.state import KeyframeState
+
+
+def _state(result: VioResult, i: int) -> KeyframeState:
+    return KeyframeState(
+        int(result.timestamps_ns[i]),
+        result.T_WI[i],
+        result.v_W[i],
+        result.acc_bias[i],
+        result.gyro_bias[i],
+        result.theta[i],
+    )
+
+
+def _segment_of(result: VioResult) -> np.ndarray:
+    """Segment index of every keyframe (from ``stats['segments']`` start stamps; 0 without them)."""
+    starts = sorted(int(s["start_ns"]) for s in result.stats.get("segments", []))
+    if not starts:
+        return np.zeros(result.timestamps_ns.size, dtype=int)
+    return np.searchsorted(np.asarray(starts, dtype=np.int64), result.timestamps_ns, side="right") - 1
+
+
+def _jump_check(result: VioResult, limits: DivergenceLimits) -> HealthCheck:
+    seg = _segment_of(result)
+    worst_ratio, where = 0.0, ""
+    for i in range(1, result.timestamps_ns.size):
+        if seg[i] != seg[i - 1]:
+            continue
+        prev, cur = _state(result, i - 1), _state(result, i)
+        if not (state_is_finite(prev) and state_is_finite(cur)):
+            continue
+        dt = (cur.t_ns - prev.t_ns) / NS
+        jump = float(np.linalg.norm(cur.T_WI[:3, 3] - prev.T_WI[:3, 3]))
+        bound = max_jump(prev, dt, limits)
+        ratio = jump / bound if bound > 0 else np.inf
+        if ratio > worst_ratio:
+            worst_ratio, where = (
+                ratio,
+                f"{jump:.3g} m in {dt:.3f} s at t_ns {cur.t_ns}, bound {bound:.3g} m",
+            )
+    return HealthCheck(
+        "position_jumps",
+        worst_ratio <= 1.0,
+        f"largest keyframe-to-keyframe move relative to the physical bound: {worst_ratio:.3g} ({where or 'none'})",
+        "" if worst_ratio <= 1.0 else "the estimate jumped: check the IMU data (spikes, units, rate) and --pixel-sigma",
+        worst_ratio,
+        1.0,
+    )
 
 
 def vio_health(result: VioResult, imu: ImuConfig, options: VioOptions) -> HealthReport:
-    """Every health check of the trajectory ``result``."""
-    return HealthReport("trajectory")
+    """Every health check of the trajectory ``result`` (module docstring)."""
+    report = HealthReport("trajectory")
+    stats: dict[str, Any] = result.stats
+    limits = DivergenceLimits.from_options(options, imu)
+    n = int(result.timestamps_ns.size)
+    need = options.min_track_keyframes
+    report.add(
+        HealthCheck(
+            "keyframes",
+            n >= need,
+            f"{n} keyframes (at least {need} are needed to triangulate a landmark)",
+            "" if n >= need else "the bag is too short or almost no frame lies within the IMU's time span",
+            n,
+            need,
+        )
+    )
+    if n == 0:
+        return report
+    finite = all(state_is_finite(_state(result, i)) for i in range(n))
+    report.add(
+        HealthCheck(
+            "finite",
+            finite,
+            "every keyframe state is finite" if finite else "NaN/inf in the estimated poses, velocities or biases",
+            "" if finite else "check the IMU samples and noise densities",
+        )
+    )
+    speeds = np.linalg.norm(result.v_W, axis=1)
+    vmax = float(np.nanmax(speeds)) if np.any(np.isfinite(speeds)) else float("inf")
+    ok = vmax <= options.max_speed
+    report.add(
+        HealthCheck(
+            "speed",
+            ok,
+            f"largest speed {vmax:.3g} m/s (physical limit max_speed {options.max_speed:g} m/s)",
+            ""
+            if ok
+            else "the estimate diverged: check IMU units (m/s^2, rad/s), T_sI and the IMU noise; raise "
+            "smoother.max_speed only if the platform really is that fast",
+            vmax,
+            options.max_speed,
+        )
+    )
+    report.add(_jump_check(result, limits))
+    events = stats.get("divergences", [])
+    bad = [e for e in events if not e.get("recovered", False)]
+    report.add(
+        HealthCheck(
+            "divergences",
+            not bad,
+            f"{len(events)} divergence/failed-update events during the run, {len(bad)} not recovered within one "
+            f"window ({options.lag:g} s)" + (f"; first: {bad[0]['reason']} at t_ns {bad[0]['t_ns']}" if bad else ""),
+            ""
+            if not bad
+            else "the estimate kept diverging after restarts: check the IMU noise densities, T_sI and the camera "
+            "calibration",
+            len(bad),
+            0,
+        )
+    )
+    sigma = stats.get("final_velocity_sigma_mps")
+    if sigma is not None:
+        ok = bool(sigma <= options.max_velocity_sigma)
+        report.add(
+            HealthCheck(
+                "velocity_covariance",
+                ok,
+                f"final velocity 1-sigma {sigma:.3g} m/s (limit max_velocity_sigma {options.max_velocity_sigma:g} m/s)",
+                "" if ok else "nothing constrains the velocity at the end (vision lost?): check the images and IMU",
+                sigma,
+                options.max_velocity_sigma,
+            )
+        )
+    blind = stats.get("longest_without_vision_s")
+    if blind is not None:
+        ok = bool(blind <= options.lag)
+        report.add(
+            HealthCheck(
+                "vision",
+                ok,
+                f"longest stretch of keyframes without any visual factor: {blind:.2f} s (limit: the smoother window "
+                f"lag {options.lag:g} s)",
+                ""
+                if ok
+                else "vision contributed nothing for that long (IMU dead reckoning): check the IMU clock offset and "
+                "rate against the images, the camera topics and calibration (T_sI), and --pixel-sigma",
+                blind,
+                options.lag,
+            )
+        )
+    segments = stats.get("segments", [])
+    report.add(
+        HealthCheck(
+            "segments",
+            True,
+            f"{max(len(segments), 1)} trajectory segment(s)"
+            + (
+                ": restarts at " + ", ".join(f"t_ns {s['start_ns']} ({s['reason']})" for s in segments[1:])
+                if len(segments) > 1
+                else ""
+            ),
+            value=max(len(segments), 1),
+        )
+    )
+    return report

@@ -217,7 +217,9 @@ def run_statistics(
         "frames_outside_imu": worker.counters["skipped"],
         "image_gaps": len(vb.image_gaps),
         "imu_gaps": len(vb.imu_gaps),
-        "imu_samples_dropped": vb.imu_check.non_finite + vb.imu_check.out_of_order,
+        "imu_samples_dropped": vb.imu_check.non_finite + vb.imu_check.out_of_range + vb.imu_check.out_of_order,
+        "imu_samples_out_of_range": vb.imu_check.out_of_range,
+        "duplicate_messages_dropped": vb.imu_check.duplicates + vb.duplicate_images,
         "frontend_resets": worker.counters["resets"],
         "frontend_worker": worker.mode,
         "frontend_process_cpu_s": worker.counters["cpu_s"] if worker.mode == "process" else None,
@@ -267,7 +269,15 @@ def run_vio_bag(
     check_bag_inputs(calibration, options, topics)
     mono = options.mode == "mono"
     t_wall = time.perf_counter()
-    vb = VioBag(bag, topics.imu, topics.static, None if mono else topics.dynamic, tolerance_ns=pipeline.tolerance_ns)
+    vb = VioBag(
+        bag,
+        topics.imu,
+        topics.static,
+        None if mono else topics.dynamic,
+        tolerance_ns=pipeline.tolerance_ns,
+        acc_range=imu_config.acc_range,
+        gyro_range=imu_config.gyro_range,
+    )
     t_first, t_last = int(vb.imu.t_ns[0]), int(vb.imu.t_ns[-1])
     t_min = t_first if initial is None else max(t_first, int(initial.t_ns))
     guess = joint_angle_guess(options, initial)

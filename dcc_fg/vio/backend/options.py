@@ -29,6 +29,13 @@ class VioOptions:
     ``theta_initial`` the joint-angle guess of a ``dcc`` run initialized from standstill;
     ``min_gimbal_landmarks`` and ``theta_measurement_inflation``: when and how strongly a direct
     joint-angle measurement is used (:meth:`~dcc_fg.vio.backend.smoother.VioSmoother.add_frame`).
+
+    Divergence and recovery (:mod:`~dcc_fg.vio.backend.divergence`): ``max_speed`` (m/s) is the
+    platform's top speed; ``max_velocity_sigma`` (m/s) the largest velocity 1-sigma of a
+    constrained estimate; an interval between IMU samples longer than ``imu_gap_periods`` median
+    sample periods is an IMU gap. After a gap or a divergence the smoother starts a new trajectory
+    segment anchored with ``restart_rotation_sigma`` (rad), ``restart_velocity_sigma`` (m/s) and
+    ``restart_theta_sigma`` (rad) priors.
     """
 
     mode: str = "dcc"
@@ -66,6 +73,12 @@ class VioOptions:
     extra_iterations: int = 0
     min_gimbal_landmarks: int = 10
     theta_measurement_inflation: float = 3.0
+    max_speed: float = 30.0
+    max_velocity_sigma: float = 2.0
+    imu_gap_periods: float = 5.0
+    restart_rotation_sigma: float = 0.05
+    restart_velocity_sigma: float = 1.0
+    restart_theta_sigma: float = 0.5
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -74,6 +87,17 @@ class VioOptions:
             raise ValueError(f"smoother '{self.smoother}' is not one of incremental, batch")
         if self.keyframe_every < 1 or self.lag <= 0 or self.sigma <= 0:
             raise ValueError("keyframe_every >= 1, lag > 0 and sigma > 0 are required")
+        for name in (
+            "max_speed",
+            "max_velocity_sigma",
+            "imu_gap_periods",
+            "restart_rotation_sigma",
+            "restart_velocity_sigma",
+            "restart_theta_sigma",
+        ):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value > 0):
+                raise ValueError(f"smoother option '{name}' must be a positive number, got {value!r}")
 
 
 @dataclass(frozen=True)

@@ -9,7 +9,9 @@ import logging
 import time
 from collections.abc import Callable
 
-from dcc_fg.data.vio import ImuConfig, ImuSamples, TrackFrame
+import numpy as np
+
+from dcc_fg.data.vio import ImuConfig, ImuSamples, TrackFrame, check_imu_against_frames, imu_out_of_range
 from dcc_fg.model import GimbalCalibration
 from dcc_fg.vio.backend.landmarks import validate_frames
 from dcc_fg.vio.backend.options import NS, InitialState, VioOptions, VioResult
@@ -27,10 +29,17 @@ def run_vio(
     initial: InitialState | None = None,
     progress: Callable[[int, int], None] | None = None,
 ) -> VioResult:
-    """Run the smoother over time-ordered frames; ``initial`` (at the first frame) or standstill."""
+    """Run the smoother over time-ordered frames; ``initial`` (at the first frame) or standstill.
+
+    IMU samples with non-finite values or beyond the sensor's range (``imu_config.acc_range``,
+    ``gyro_range``) are dropped with a log line; an IMU rate too low for preintegration or frames
+    far outside the IMU's time span are refused (:func:`~dcc_fg.data.vio.check_imu_against_frames`).
+    """
     options = options or VioOptions()
     validate_frames(frames)
     t_start = time.perf_counter()
+    imu, dropped = drop_implausible_imu(imu, imu_config)
+    check_imu_against_frames(imu.t_ns, np.array([f.timestamp_ns for f in frames], dtype=np.int64), "imu")
     sm = VioSmoother(imu, imu_config, calibration, options)
     if frames[0].timestamp_ns < imu.t_ns[0] or frames[-1].timestamp_ns > imu.t_ns[-1] + NS // 10:
         log.warning("camera frames extend beyond the IMU data; clipping to the IMU time span")
@@ -45,9 +54,30 @@ def run_vio(
         if progress is not None:
             progress(i, len(frames))
     res = sm.result()
+    res.stats["imu_samples_dropped"] = dropped
     duration = (frames[-1].timestamp_ns - frames[0].timestamp_ns) / NS
     res.stats.update(timing_stats(time.perf_counter() - t_start, duration, len(frames)))
     return res
+
+
+def drop_implausible_imu(imu: ImuSamples, config: ImuConfig) -> tuple[ImuSamples, int]:
+    """``imu`` without the samples that are non-finite or beyond the sensor's range (m/s^2, rad/s
+    per axis), and how many were dropped (logged)."""
+    bad = imu_out_of_range(imu.acc, imu.gyro, config.acc_range, config.gyro_range)
+    n = int(bad.sum())
+    if n == 0:
+        return imu, 0
+    i = int(np.flatnonzero(bad)[0])
+    log.warning(
+        "dropped %d IMU samples that are non-finite or beyond the sensor's range (|acc| > %.1f m/s^2 or |gyro| > "
+        "%.2f rad/s on an axis; first at t_ns %d)",
+        n,
+        config.acc_range,
+        config.gyro_range,
+        int(imu.t_ns[i]),
+    )
+    keep = ~bad
+    return ImuSamples(imu.t_ns[keep], imu.acc[keep], imu.gyro[keep]), n
 
 
 def timing_stats(elapsed_s: float, duration_s: float, frames: int) -> dict[str, float | int]:

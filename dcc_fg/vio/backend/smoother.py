@@ -7,6 +7,17 @@ observations of known landmarks and triangulates ready tracks (:mod:`.landmarks`
 :mod:`.cameras`) and updates the fixed-lag window (:mod:`.window`), restarting it after a failure.
 Estimates are kept per keyframe as :class:`~.state.KeyframeState`. ``T_WI`` maps body/IMU points into
 W (gravity along -z); times in ns, angles in rad (``docs/architecture.md``).
+
+Recovery: every keyframe is checked against the physical limits of :mod:`.divergence` (finite,
+speed, position jump, velocity covariance). A keyframe whose IMU interval has a gap (a sample
+spacing longer than ``imu_gap_periods`` median periods), a diverged keyframe and a failed update
+each start a new *trajectory segment*: the window and the landmarks are dropped and the smoother is
+re-anchored at that keyframe, from standstill when the IMU and the static camera's tracks are at
+rest, else from the last healthy keyframe's attitude and velocity (IMU-propagated to the keyframe
+when the IMU covers the interval) with loose priors, and vision starts afresh. Frames inside an IMU
+gap make no keyframes. The segments (start/end stamps, reason) and the divergence events are in
+``stats['segments']`` / ``stats['divergences']``; a segment's pose is only defined up to its own
+start (evaluate per segment).
 """
 
 from __future__ import annotations
@@ -16,10 +27,12 @@ from typing import Any
 
 import gtsam
 import numpy as np
+from numpy.typing import NDArray
 
 from dcc_fg.data.vio import ImuConfig, ImuSamples, TrackFrame
 from dcc_fg.model import GimbalCalibration
 from dcc_fg.vio.backend.cameras import GIMBAL, STATIC, CameraRig
+from dcc_fg.vio.backend.divergence import DivergenceLimits, divergence
 from dcc_fg.vio.backend.imu import preintegrate, preintegration_params, standstill_state, validate_imu
 from dcc_fg.vio.backend.joints import fit_joint_angles_to_landmarks, joint_measurement_prior, start_joint_angles
 from dcc_fg.vio.backend.keys import bias_key, landmark_key, pose_key, theta_key, velocity_key
@@ -84,6 +97,19 @@ class VioSmoother:
             "gated": 0,
             "failed_updates": 0,
         }
+        # recovery bookkeeping (module docstring)
+        self.limits = DivergenceLimits.from_options(options, imu_config)
+        dt_imu = np.diff(imu.t_ns)
+        self.max_imu_gap_ns = int(options.imu_gap_periods * float(np.median(dt_imu)))
+        self.segments: list[dict[str, Any]] = []  # start keyframe index, start time, reason
+        self.divergences: list[dict[str, Any]] = []
+        self.healthy_k = 0
+        self.in_gap = False
+        self.last_frame_static: dict[int, FloatArray] = {}
+        self.vision_factors = 0  # visual factors (reprojection, zero velocity) of the keyframe being built
+        self.last_vision_ns: int | None = None
+        self.longest_without_vision_ns = 0
+        self.velocity_sigma: dict[int, float] = {}
 
     # ------------------------------------------------------------------ helpers
     def _theta_at(self, k: int, values: gtsam.Values | None = None) -> FloatArray:
@@ -143,9 +169,14 @@ class VioSmoother:
         self.estimates[0] = KeyframeState(
             t, pose.matrix(), v, self.bias.accelerometer(), self.bias.gyroscope(), self.theta.copy()
         )
+        self.segments.append({"k": 0, "start_ns": t, "reason": "start"})
+        self.last_vision_ns = t
+        self.vision_factors = 0
         self._observe(0, frame, graph, values, stamps)
         self.prev_static = dict(zip(frame.static_ids.tolist(), frame.static_xy, strict=True))
+        self.last_frame_static = dict(self.prev_static)
         self._update(graph, values, stamps)
+        self._after_keyframe(0)
 
     def next_is_keyframe(self) -> bool:
         """True if the next :meth:`add_frame` call will make a keyframe."""
@@ -167,15 +198,202 @@ class VioSmoother:
         """
         self.frame_count += 1
         if (self.frame_count - 1) % self.opt.keyframe_every:
+            self.last_frame_static = dict(zip(frame.static_ids.tolist(), frame.static_xy, strict=True))
             return False
         k_prev, k = self.k, self.k + 1
-        graph, values, stamps, pred = self._propagate(k_prev, k, frame.timestamp_ns)
+        t = frame.timestamp_ns
+        gap = self.in_gap or self._imu_gap_ns(self.kf_times[k_prev], t) > self.max_imu_gap_ns
+        if gap:
+            return self._after_imu_gap(k, frame, theta_measurement)
+        self.vision_factors = 0
+        graph, values, stamps, pred = self._propagate(k_prev, k, t)
         if self.opt.mode == "dcc":
             self._add_joint_angles(k_prev, k, frame, pred.pose(), theta_measurement, graph, values, stamps)
         self._zero_velocity(k_prev, k, frame, graph)
         self._observe(k, frame, graph, values, stamps)
         self._update(graph, values, stamps)
+        self._after_keyframe(k)
+        self.last_frame_static = dict(zip(frame.static_ids.tolist(), frame.static_xy, strict=True))
         return True
+
+    # ------------------------------------------------------------------ recovery
+    def _imu_gap_ns(self, t0: int, t1: int) -> int:
+        """Longest stretch (ns) of [t0, t1] without an IMU sample (sample spacing, or the part of
+        the interval before the first / after the last sample)."""
+        t = self.imu.t_ns
+        i0 = max(int(np.searchsorted(t, t0, side="right")) - 1, 0)
+        i1 = min(int(np.searchsorted(t, t1, side="left")), len(t) - 1)
+        inner = t[i0 : i1 + 1]
+        gap = int(np.diff(inner).max()) if inner.size > 1 else 0
+        gap = max(gap, int(t[0]) - t0, t1 - int(t[-1]))
+        return gap
+
+    def _imu_around(self, t: int) -> bool:
+        """True if IMU samples lie within the gap limit before and after ``t`` (a keyframe can be
+        started there) and the standstill window after it is covered."""
+        return self._imu_gap_ns(t - self.max_imu_gap_ns, t + self.max_imu_gap_ns) <= self.max_imu_gap_ns
+
+    def _after_imu_gap(
+        self, k: int, frame: TrackFrame, theta_measurement: tuple[FloatArray, FloatArray] | None
+    ) -> bool:
+        """A keyframe candidate whose IMU interval has a gap: skip it while the IMU is missing, then
+        start a new segment at the first keyframe the IMU covers again."""
+        t = frame.timestamp_ns
+        t_prev = self.kf_times[self.k]
+        if not self.in_gap:
+            self.in_gap = True
+            log.warning(
+                "IMU gap of %.3f s after the keyframe at t_ns %d (limit %.3f s = %g IMU periods): no IMU factor can "
+                "bridge it; a new trajectory segment starts where the IMU resumes",
+                self._imu_gap_ns(t_prev, t) / NS,
+                t_prev,
+                self.max_imu_gap_ns / NS,
+                self.opt.imu_gap_periods,
+            )
+            self.stats["imu_gaps"] = self.stats.get("imu_gaps", 0) + 1
+        if not self._imu_around(t):
+            self.last_frame_static = dict(zip(frame.static_ids.tolist(), frame.static_xy, strict=True))
+            return False
+        self.in_gap = False
+        self._new_segment(k, frame, theta_measurement, f"IMU gap of {(t - t_prev) / NS:.3f} s before it")
+        return True
+
+    def _at_rest(self, frame: TrackFrame) -> InitialState | None:
+        """Standstill state at ``frame`` when both the static camera's tracks (since the previous
+        frame) and the IMU (``standstill_window`` after it) are at rest, else None."""
+        cur = dict(zip(frame.static_ids.tolist(), frame.static_xy, strict=True))
+        if not static_tracks_at_rest(self.last_frame_static, cur, self.opt):
+            return None
+        try:
+            return standstill_state(self.imu, frame.timestamp_ns, self.opt.standstill_window, self.cfg.gravity, self.L)
+        except ValueError:
+            return None
+
+    def _new_segment(
+        self, k: int, frame: TrackFrame, theta_measurement: tuple[FloatArray, FloatArray] | None, reason: str
+    ) -> None:
+        """Start trajectory segment at new keyframe ``k`` (``frame``) without an IMU factor from the
+        previous keyframe: a fresh window and landmark map, anchored from standstill or from the last
+        healthy keyframe's attitude and velocity (module docstring)."""
+        t = frame.timestamp_ns
+        last = self.estimates[self.healthy_k]
+        rest = self._at_rest(frame)
+        dt = (t - last.t_ns) / NS
+        if rest is not None:
+            T = np.array(last.T_WI, float)
+            T[:3, :3] = rest.T_WI[:3, :3]
+            v = np.zeros(3)
+            bias = gtsam.imuBias.ConstantBias(np.asarray(last.acc_bias, float), rest.gyro_bias)
+            how = "standstill"
+        else:
+            T = np.array(last.T_WI, float)
+            T[:3, 3] += np.asarray(last.v_W, float) * dt
+            v = np.asarray(last.v_W, float)
+            bias = gtsam.imuBias.ConstantBias(np.asarray(last.acc_bias, float), np.asarray(last.gyro_bias, float))
+            how = "last healthy attitude and velocity"
+        theta = np.asarray(last.theta, float).copy() if self.L else np.zeros(0)
+        if self.opt.mode == "scc":
+            theta = np.asarray(self.opt.theta_fixed, float)
+        elif self.opt.mode == "dcc" and theta_measurement is not None:
+            theta = np.asarray(theta_measurement[0], float)
+        self._anchor_segment(k, t, gtsam.Pose3(T), v, bias, theta, rest is not None, reason, how, frame)
+
+    def _anchor_segment(
+        self,
+        k: int,
+        t: int,
+        pose: gtsam.Pose3,
+        v: FloatArray,
+        bias: gtsam.imuBias.ConstantBias,
+        theta: FloatArray,
+        at_rest: bool,
+        reason: str,
+        how: str,
+        frame: TrackFrame | None,
+    ) -> None:
+        """New segment at keyframe ``k`` (time ``t``) from the given state: drop landmarks, anchor a
+        fresh window (loose restart priors), observe ``frame`` and refresh the estimates."""
+        o = self.opt
+        self.landmarks.clear()
+        self.k = k
+        self.kf_times[k] = t
+        dcc = o.mode == "dcc"
+        sigmas = AnchorSigmas(
+            o.restart_rotation_sigma,
+            o.prior_position_sigma,
+            o.zupt_velocity_sigma if at_rest else o.restart_velocity_sigma,
+            o.prior_acc_bias_sigma,
+            o.prior_gyro_bias_sigma,
+            o.restart_theta_sigma,
+        )
+        graph, values, stamps = anchor_factors(k, t, pose, v, bias, theta if dcc else None, sigmas)
+        if dcc:
+            self.rig.add_gimbal_camera_pose(k, t, pose, theta, graph, values, stamps)
+        self.state = gtsam.NavState(pose, v)
+        self.bias = bias
+        self.theta = theta if self.L else np.zeros(0)
+        self.estimates[k] = KeyframeState(t, pose.matrix(), v, bias.accelerometer(), bias.gyroscope(), theta.copy())
+        self.segments.append({"k": k, "start_ns": t, "reason": reason})
+        self.stats["segments_started"] = self.stats.get("segments_started", 0) + 1
+        log.warning("new trajectory segment %d at t_ns %d (%s): restarted from %s", len(self.segments), t, reason, how)
+        self.vision_factors = 0
+        if frame is not None:
+            self._observe(k, frame, graph, values, stamps)
+            self.prev_static = dict(zip(frame.static_ids.tolist(), frame.static_xy, strict=True))
+        self.window.restart(graph, values, stamps)
+        self._refresh()
+        self.healthy_k = k
+        self._after_keyframe(k, check=False)
+
+    def _after_keyframe(self, k: int, check: bool = True) -> None:
+        """Bookkeeping of keyframe ``k`` after its update: vision time, velocity sigma, divergence."""
+        t = self.kf_times[k]
+        if self.vision_factors > 0 or self.last_vision_ns is None:
+            self.last_vision_ns = t
+        self.longest_without_vision_ns = max(self.longest_without_vision_ns, t - self.last_vision_ns)
+        sigma = self._velocity_sigma(k)
+        if sigma is not None:
+            self.velocity_sigma[k] = sigma
+        if not check:
+            return
+        seg_start = self.segments[-1]["k"]
+        prev = self.estimates.get(k - 1) if k - 1 >= seg_start else None
+        reason = divergence(prev, self.estimates[k], self.limits, sigma)
+        if reason is None:
+            self.healthy_k = k
+            return
+        self._diverged(k, reason)
+
+    def _velocity_sigma(self, k: int) -> float | None:
+        """Largest 1-sigma (m/s) of keyframe ``k``'s velocity from the window's marginal covariance."""
+        try:
+            cov = np.asarray(self.window.smoother.marginalCovariance(velocity_key(k)), float)
+        except RuntimeError:
+            return None
+        return float(np.sqrt(max(np.linalg.eigvalsh(cov).max(), 0.0)))
+
+    def _diverged(self, k: int, reason: str) -> None:
+        """Keyframe ``k`` broke a physical limit: record it, drop the diverged keyframes since the
+        last healthy one and start a new segment at ``k`` from the last healthy state, propagated
+        with the IMU to ``k``'s time."""
+        t = self.kf_times[k]
+        h = self.healthy_k
+        last = self.estimates[h]
+        log.warning("divergence at keyframe %d (t_ns %d): %s", k, t, reason)
+        self.divergences.append({"t_ns": t, "keyframe": k, "reason": reason, "last_healthy_ns": last.t_ns})
+        for kk in range(h + 1, k):
+            self.estimates.pop(kk, None)
+        bias = gtsam.imuBias.ConstantBias(np.asarray(last.acc_bias, float), np.asarray(last.gyro_bias, float))
+        nav = gtsam.NavState(gtsam.Pose3(np.asarray(last.T_WI, float)), np.asarray(last.v_W, float))
+        if self._imu_gap_ns(last.t_ns, t) <= self.max_imu_gap_ns:
+            nav = preintegrate(self.params, bias, self.imu, last.t_ns, t).predict(nav, bias)
+        v = np.asarray(nav.velocity(), float)
+        if not np.all(np.isfinite(v)) or np.linalg.norm(v) > self.limits.max_speed:
+            v = np.asarray(last.v_W, float)
+        theta = np.asarray(last.theta, float).copy()
+        self._anchor_segment(
+            k, t, nav.pose(), v, bias, theta, False, f"divergence: {reason}", "last healthy state", None
+        )
 
     def _propagate(
         self, k_prev: int, k: int, t: int
@@ -257,6 +475,7 @@ class VioSmoother:
         if not static_tracks_at_rest(prev, cur, self.opt):
             return
         self.stats["zero_velocity"] = self.stats.get("zero_velocity", 0) + 1
+        self.vision_factors += 1
         for factor in zero_velocity_factors(k_prev, k, self.opt):
             graph.add(factor)
 
@@ -291,6 +510,7 @@ class VioSmoother:
     def _factor(self, k: int, cam: int, lm: int, z: FloatArray) -> gtsam.NonlinearFactor:
         """Reprojection factor of landmark ``lm`` seen by camera ``cam`` at keyframe k (counted)."""
         self.stats["static_obs" if cam == STATIC else "dynamic_obs"] += 1
+        self.vision_factors += 1
         return self.rig.observation_factor(k, cam, lm, z)
 
     def _triangulate_ready(
@@ -321,6 +541,15 @@ class VioSmoother:
                 error,
             )
             self._restart(values)
+            self.segments.append({"k": self.k, "start_ns": self.kf_times[self.k], "reason": f"failed update: {error}"})
+            self.divergences.append(
+                {"t_ns": self.kf_times[self.k], "keyframe": self.k, "reason": f"failed update: {error}"}
+            )
+        self._refresh()
+
+    def _refresh(self) -> None:
+        """Estimates of the window's keyframes, the newest navigation state, bias, joint angles and
+        the landmark positions from the window's current estimate."""
         est = self.window.estimate()
         for kk, t in self.kf_times.items():
             if est.exists(pose_key(kk)):
@@ -356,5 +585,42 @@ class VioSmoother:
         self.window.restart(graph, new, stamps)
 
     def result(self) -> VioResult:
-        """Every keyframe's latest estimate, in time order, with the run's counters."""
-        return result_from_states(self.estimates, self.opt.mode, self.stats)
+        """Every keyframe's latest estimate, in time order, with the run's counters and the recovery
+        record: ``segments`` (start/end stamps, keyframes, reason), ``segment_count``,
+        ``divergences`` (each with ``recovered``: the segment it started lasted ``lag`` seconds
+        without a further divergence), ``longest_without_vision_s`` and ``max_velocity_sigma_mps``."""
+        res = result_from_states(self.estimates, self.opt.mode, self.stats)
+        res.stats.update(self.recovery_stats(res.timestamps_ns))
+        return res
+
+    def recovery_stats(self, stamps: NDArray[np.int64]) -> dict[str, Any]:
+        """The recovery record of :meth:`result` for the result's keyframe stamps (ns)."""
+        segments = []
+        for i, seg in enumerate(self.segments):
+            end = self.segments[i + 1]["start_ns"] if i + 1 < len(self.segments) else None
+            inside = stamps[(stamps >= seg["start_ns"]) & (end is None or stamps < end)]
+            if inside.size == 0:
+                continue
+            segments.append(
+                {
+                    "start_ns": int(inside[0]),
+                    "end_ns": int(inside[-1]),
+                    "keyframes": int(inside.size),
+                    "reason": seg["reason"],
+                }
+            )
+        lag_ns = int(self.opt.lag * NS)
+        events = []
+        for ev in self.divergences:
+            seg = next((s for s in segments if s["start_ns"] == ev["t_ns"]), None)
+            recovered = seg is not None and seg["end_ns"] - seg["start_ns"] >= lag_ns
+            events.append({**ev, "recovered": bool(recovered)})
+        sigmas = [v for v in self.velocity_sigma.values() if np.isfinite(v)]
+        return {
+            "segments": segments,
+            "segment_count": len(segments),
+            "divergences": events,
+            "longest_without_vision_s": self.longest_without_vision_ns / NS,
+            "max_velocity_sigma_mps": max(sigmas) if sigmas else None,
+            "final_velocity_sigma_mps": self.velocity_sigma.get(self.k),
+        }
