@@ -146,7 +146,7 @@ def target_from_dict(d: dict[str, object], source: str = "<target>") -> TargetGe
             _count(d, "tagRows", source, "tags", 1),
             _length(d, "tagSize", source),
             validate.number(
-                _require(d, "tagSpacing", source), f"{source}: tagSpacing", unit="tagSize (a ratio)", positive=True
+                _require(d, "tagSpacing", source), f"{source}: tagSpacing", unit="", positive=True
             ),  # fmt: skip
         )
     raise ValueError(f"{source}: target_type must be 'checkerboard' or 'aprilgrid', got {kind!r}")

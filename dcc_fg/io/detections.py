@@ -134,7 +134,7 @@ def read_detection_table(path: str | Path) -> DetectionTable:
     validate.integer(rows, f"{where} tag_rows", unit="tags", minimum=1)
     validate.integer(cols, f"{where} tag_cols", unit="tags", minimum=1)
     validate.number(size, f"{where} tag_size", unit="metres", positive=True)
-    validate.number(spacing, f"{where} tag_spacing", unit="tag_size (a ratio)", positive=True)
+    validate.number(spacing, f"{where} tag_spacing", unit="", positive=True)
     for c in (COLUMNS.index("tag_id"), COLUMNS.index("corner_idx")):
         frac = data[:, c] != np.round(data[:, c])
         if frac.any() or (data[:, c] < 0).any():

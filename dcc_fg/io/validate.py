@@ -128,14 +128,14 @@ def number(
     Raises:
         ValueError: ``"<where> must be a <constraint> number of <unit>, got <value>"``.
     """
-    kind = "integer" if integer else "number"
-    if positive:
-        kind = f"positive {kind}"
-    elif nonnegative:
-        kind = f"non-negative {kind}"
+    phrase = ("positive " if positive else "non-negative " if nonnegative else "") + (
+        "integer" if integer else "number"
+    )
+    if unit:
+        phrase += (" count" if integer else "") + f" of {unit}"
     if minimum is not None:
-        kind = f"{kind} >= {minimum:g}"
-    expected = f"{where} must be a {kind}" + (f" of {unit}" if unit else "")
+        phrase += f" >= {minimum:g}"
+    expected = f"{where} must be {'an' if phrase[0] in 'aeiou' else 'a'} {phrase}"
     if isinstance(value, bool) or not isinstance(value, int | float | str | np.integer | np.floating):
         raise ValueError(f"{expected}, got {_describe(value)}")
     try:
@@ -153,6 +153,10 @@ def number(
 
 def integer(value: Any, where: str, *, unit: str = "", minimum: int = 0) -> int:
     """``value`` checked to be an integer >= ``minimum`` (``7.0`` is accepted, ``7.5`` is not)."""
+    if minimum == 0:
+        return int(number(value, where, unit=unit, integer=True, nonnegative=True))
+    if minimum == 1:
+        return int(number(value, where, unit=unit, integer=True, positive=True))
     return int(number(value, where, unit=unit, integer=True, minimum=minimum))
 
 
