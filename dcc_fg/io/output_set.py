@@ -615,7 +615,7 @@ class OutputFiles:
                 if r.is_relative_to(p):
                     raise OutputPathError(f"{opt} {path} is inside the input {role} folder {inp}; choose a file "
                                           "outside it")  # fmt: skip
-            check_writable_location(path, opt, "file")
+            check_writable_location(path.parent, opt, "file")
 
     def __getitem__(self, option: str) -> Path:
         return self.staged[option]
