@@ -12,6 +12,8 @@ import errno
 import json
 import os
 import signal
+import subprocess
+import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -440,3 +442,23 @@ def test_unknown_names_in_a_manifest_are_never_removed(tmp_path: Path) -> None:
         (s.path / "calibration.yaml").write_text("new")
     assert victim.read_text() == "keep" and Path("/etc/passwd").exists()
     assert np.array_equal(sorted(p.name for p in out.iterdir()), sorted([MANIFEST, "calibration.yaml"]))
+
+
+def test_real_ctrl_c_of_a_running_command(tmp_path: Path) -> None:
+    """``dcc-fg simulate flight`` in its own process, SIGINT while it renders: one line, exit 130, no
+    OUT folder and no staging folder left behind."""
+    out = tmp_path / "fl"
+    script = Path(sys.executable).parent / "dcc-fg"  # the installed command, as a user runs it
+    if not script.is_file():
+        pytest.skip(f"{script}: the dcc-fg command is not installed")
+    argv = [str(script), "simulate", "flight", "--out", str(out), "--duration", "30", "--scale", "0.25", "-q"]
+    proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 60
+    while not any(output_set.STAGING_TAG in p.name for p in tmp_path.iterdir()):  # rendering has started
+        assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
+        time.sleep(0.05)
+    time.sleep(0.3)
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130 and err == "dcc-fg simulate flight: interrupted\n", err
+    assert list(tmp_path.iterdir()) == []
