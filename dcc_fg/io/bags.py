@@ -203,12 +203,12 @@ class DuplicateFilter:
     """Drops repeated messages of a topic, in the same way on every pass over a bag.
 
     * an **exact duplicate** (same topic, same header stamp, identical serialized bytes: a message
-      recorded twice) is dropped on every topic;
+      recorded twice) is dropped: on an image topic if it repeats any of the topic's last
+      :attr:`WINDOW` images, on other topics (IMU, joint states) if it repeats the topic's previous
+      message (a sample that repeats an older one is a clock going backwards, which the reader
+      of that topic judges);
     * a **different image with the stamp of an earlier image** of the same topic is dropped too
       (the first one is kept): two images cannot both be the frame of one instant.
-
-    Only the last :attr:`WINDOW` stamps of each topic are remembered (a duplicate is recorded next
-    to its original), so memory stays bounded on long bags.
 
     Attributes:
         exact: per topic, the number of exact duplicates dropped.
@@ -229,17 +229,17 @@ class DuplicateFilter:
         recent = self._recent.setdefault(topic, OrderedDict())
         digest = hashlib.blake2b(raw, digest_size=16).digest()
         seen = recent.get(stamp)
-        if seen is None:
+        if seen is None or not (image or seen == digest):
+            if not image:
+                recent.clear()  # other topics: compare with the previous message only
             recent[stamp] = digest
             if len(recent) > self.WINDOW:
                 recent.popitem(last=False)
             return False
         if seen == digest:
             self.exact[topic] = self.exact.get(topic, 0) + 1
-        elif image:
-            self.same_stamp[topic] = self.same_stamp.get(topic, 0) + 1
         else:
-            return False
+            self.same_stamp[topic] = self.same_stamp.get(topic, 0) + 1
         self.first.setdefault(topic, stamp)
         return True
 
