@@ -460,5 +460,7 @@ def test_real_ctrl_c_of_a_running_command(tmp_path: Path) -> None:
     time.sleep(0.3)
     proc.send_signal(signal.SIGINT)
     _, err = proc.communicate(timeout=60)
-    assert proc.returncode == 130 and err == "dcc-fg simulate flight: interrupted\n", err
+    # 130; or ended by SIGINT (-2, which a shell also shows as 130) when the signal lands while code compiled
+    # from a string runs (rosbags builds its serializers with exec): CPython then re-raises SIGINT at exit
+    assert proc.returncode in (130, -signal.SIGINT) and err == "dcc-fg simulate flight: interrupted\n", err
     assert list(tmp_path.iterdir()) == []
