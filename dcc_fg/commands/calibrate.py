@@ -3,7 +3,11 @@
 Inputs (paths) stay on the command line; options come from :class:`CalibrateConfig` /
 :class:`ValidateConfig` (defaults, ``--config FILE``, then flags). Every ``summary.json`` records
 the version, the command line, the inputs and the effective options (see
-:func:`dcc_fg.util.provenance.run_record`).
+:func:`dcc_fg.util.provenance.run_record`) and the result's ``health``
+(:func:`~dcc_fg.calibration_health.calibration_health`). The outputs are written as one set
+(:class:`~dcc_fg.io.output_set.OutputSet`): ``--out`` is checked before any work, and nothing is
+written when the run fails, is interrupted or its result is unhealthy (unless
+``output.accept_unhealthy``).
 """
 
 from __future__ import annotations

@@ -4,8 +4,11 @@ Reads the gimbal calibration (``calibration.yaml`` of ``dcc-fg calibrate`` or ``
 flight``) and the IMU configuration (its ``imu:`` section, or a Kalibr ``imu.yaml`` for the noise
 plus a Kalibr camchain with ``T_cam_imu`` for the mount), runs
 :func:`~dcc_fg.vio.pipeline.run_vio_bag` with a progress bar showing the real-time factor, and
-writes ``OUT/trajectory.tum``, ``OUT/joint_angles.csv`` (dcc, scc) and ``OUT/summary.json``
-atomically; nothing is written when the input is bad. Options come from :class:`VioConfig`
+writes ``OUT/trajectory.tum``, ``OUT/joint_angles.csv`` (dcc, scc) and ``OUT/summary.json`` (with the
+trajectory's ``health``, :func:`~dcc_fg.vio.health.vio_health`) as one output set
+(:class:`~dcc_fg.io.output_set.OutputSet`): OUT is checked before the run, nothing is written when
+the input is bad, the run fails or is interrupted, or the trajectory is unhealthy (exit code 3;
+``--accept-unhealthy`` writes it marked ``healthy: false``). Options come from :class:`VioConfig`
 (defaults, ``--config FILE``, then flags); ``summary.json`` records them with the version, the
 command line, the inputs and the effective smoother and front-end settings.
 """
