@@ -464,3 +464,15 @@ def test_real_ctrl_c_of_a_running_command(tmp_path: Path) -> None:
     # from a string runs (rosbags builds its serializers with exec): CPython then re-raises SIGINT at exit
     assert proc.returncode in (130, -signal.SIGINT) and err == "dcc-fg simulate flight: interrupted\n", err
     assert list(tmp_path.iterdir()) == []
+
+
+def test_evaluate_only_into_a_vio_folder(tmp_path, capsys) -> None:  # noqa: ANN001
+    """evaluate attaches its files to a vio folder: a calibrate folder or a file are refused before reading."""
+    cal = tmp_path / "cal"
+    with OutputSet(cal, "calibrate") as s:
+        (s.path / "calibration.yaml").write_text("cal")
+    gt = tmp_path / "gt.tum"
+    gt.write_text("not read\n")
+    refused(["evaluate", str(cal), "--ground-truth", str(gt)], capsys, [tmp_path], str(cal),
+            "result folder of 'dcc-fg calibrate'", "only into vio folders")  # fmt: skip
+    refused(["evaluate", str(gt), "--ground-truth", str(gt)], capsys, [tmp_path], str(gt), "is a file")
