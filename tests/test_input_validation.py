@@ -30,7 +30,7 @@ from dcc_fg.io.bag_writer import BagWriter, write_ros1_bag, write_ros2_bag
 from dcc_fg.io.bags import read_bag_pairs, scan_imu_and_image_stamps
 from dcc_fg.io.camchain import load_camchain
 from dcc_fg.io.detections import HEADER, read_detection_table
-from dcc_fg.io.euroc import read_sensor_yaml
+from dcc_fg.io.euroc import read_image_list, read_sensor_yaml, sensor_camera, sensor_T_BS
 from dcc_fg.io.folders import FramePair, read_joints_csv
 from dcc_fg.io.pairing import pair_timestamps
 from dcc_fg.io.tum import read_tum
@@ -673,3 +673,66 @@ def test_real_data_still_loads() -> None:
 def test_gtsam_eqvio_file_still_loads() -> None:
     data = load_eqvio_csv()
     assert len(data.frames) > 100 and data.imu.t_ns.size > 1000
+
+
+# ---------------------------------------------------------------------------------------------
+# ASL / EuRoC folders: sensor.yaml fields and image lists
+# ---------------------------------------------------------------------------------------------
+
+SENSOR: dict[str, Any] = {
+    "sensor_type": "camera",
+    "T_BS": {"cols": 4, "rows": 4, "data": [1.0, 0, 0, 0.1, 0, 1.0, 0, 0, 0, 0, 1.0, 0, 0, 0, 0, 1.0]},
+    "rate_hz": 20,
+    "resolution": [752, 480],
+    "camera_model": "pinhole",
+    "intrinsics": [458.654, 457.296, 367.215, 248.375],
+    "distortion_model": "radial-tangential",
+    "distortion_coefficients": [-0.28, 0.07, 0.0002, 1.8e-05],
+}
+SENSOR_CASES = [
+    ("T_BS_15", ("T_BS", "data"), [1.0] * 15, "T_BS.data must be the 16 entries of a 4x4 matrix"),
+    ("T_BS_scaled", ("T_BS", "data", 0), 3.0, "T_BS: the 3x3 block is not a rotation"),
+    ("T_BS_nan", ("T_BS", "data", 3), NAN, "T_BS[0][3] must be a number, got nan"),
+    ("fu_negative", ("intrinsics", 0), -458.0, "intrinsics[0] (fu) must be a positive number of pixels"),
+    ("distortion_unknown", ("distortion_model",), "fov", "distortion_model must be one of"),
+    ("coeff_inf", ("distortion_coefficients", 1), INF, "distortion_coeffs[1] must be a number, got inf"),
+    ("resolution_1", ("resolution",), [752], "resolution must have 2 entries"),
+]
+
+
+def _load_sensor(path: Path) -> Any:
+    d = read_sensor_yaml(path)
+    return sensor_T_BS(d, path), sensor_camera(d, path)
+
+
+@pytest.mark.parametrize(("path", "value", "needle"), [c[1:] for c in SENSOR_CASES], ids=[c[0] for c in SENSOR_CASES])
+def test_asl_sensor_yaml_refused(tmp_path: Path, path: tuple[Any, ...], value: Any, needle: str) -> None:
+    bad = tmp_path / "sensor.yaml"
+    bad.write_text("%YAML:1.0\n" + yaml.safe_dump(_with(SENSOR, path, value), sort_keys=False))
+    _refused(_load_sensor, bad, needle)
+
+
+def test_asl_sensor_yaml_good_and_malformed_line(tmp_path: Path) -> None:
+    good = tmp_path / "sensor.yaml"
+    good.write_text("%YAML:1.0\n" + yaml.safe_dump(SENSOR, sort_keys=False))
+    T, cam = _load_sensor(good)
+    assert T[0, 3] == 0.1 and cam.distortion_model == "radtan"
+    good.write_text("%YAML:1.0\nrate_hz: 20\nresolution: [752, 480\n")
+    _refused(read_sensor_yaml, good, "sensor.yaml:3: malformed YAML")  # the file's own line numbers
+
+
+@pytest.mark.parametrize(
+    ("rows", "needle"),
+    [
+        ("100,a.png\n100,b.png\n", "data.csv:3: timestamp 100 is listed twice (also line 2)"),
+        ("1.5e9,a.png\n", "data.csv:2: timestamp must be an integer in ns, got '1.5e9'"),
+        ("-100,a.png\n", "data.csv:2: timestamp must be a positive integer in ns"),
+    ],
+    ids=["repeated", "float", "negative"],
+)
+def test_asl_image_list_refused(tmp_path: Path, rows: str, needle: str) -> None:
+    (tmp_path / "data").mkdir()
+    (tmp_path / "data.csv").write_text("#timestamp [ns],filename\n" + rows)
+    with pytest.raises(ValueError) as info:
+        read_image_list(tmp_path)
+    assert needle in str(info.value) and str(tmp_path / "data.csv") in str(info.value)
