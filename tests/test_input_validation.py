@@ -31,7 +31,7 @@ from dcc_fg.io.bags import read_bag_pairs, scan_imu_and_image_stamps
 from dcc_fg.io.camchain import load_camchain
 from dcc_fg.io.detections import HEADER, read_detection_table
 from dcc_fg.io.euroc import read_image_list, read_sensor_yaml, sensor_camera, sensor_T_BS
-from dcc_fg.io.folders import FramePair, read_joints_csv
+from dcc_fg.io.folders import FramePair, ImageFolder, read_joints_csv, write_image_folder
 from dcc_fg.io.pairing import pair_timestamps
 from dcc_fg.io.tum import read_tum
 from dcc_fg.model import load_calibration
@@ -736,3 +736,11 @@ def test_asl_image_list_refused(tmp_path: Path, rows: str, needle: str) -> None:
     with pytest.raises(ValueError) as info:
         read_image_list(tmp_path)
     assert needle in str(info.value) and str(tmp_path / "data.csv") in str(info.value)
+
+
+def test_joints_csv_that_is_a_folder_is_refused_not_ignored(tmp_path: Path) -> None:
+    root = write_image_folder(tmp_path / "images", _frames(2))
+    (root / "joints.csv").unlink(missing_ok=True)
+    (root / "joints.csv").mkdir()
+    with pytest.raises(ValueError, match=r"joints.csv: is a folder; expected a joints.csv file"):
+        ImageFolder(root)

@@ -173,7 +173,8 @@ class ImageFolder:
         self._pairs = [(s_ts[i], d_ts[j]) for i, j in self.pairing.pairs]
         self.tolerance_ns = tolerance_ns
         joints_path = self.root / JOINTS_FILE
-        self.joints = read_joints_csv(joints_path) if joints_path.is_file() else None
+        # exists(), not is_file(): a folder named joints.csv is refused by read_joints_csv, not ignored
+        self.joints = read_joints_csv(joints_path) if joints_path.exists() else None
         self._joint_index = (
             nearest_within([s for s, _ in self._pairs], self.joints[0], tolerance_ns)
             if self.joints is not None

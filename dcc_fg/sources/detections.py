@@ -127,7 +127,7 @@ def read_detection_folder(
     pairing = pair_timestamps(s_ts, d_ts, tolerance_ns)
     check_pairing(pairing, len(s_ts), len(d_ts), str(dirs[0]), str(dirs[1]))
     joints: tuple[NDArray[np.int64], NDArray[np.float64]] | None = None
-    if (root / JOINTS_FILE).is_file():
+    if (root / JOINTS_FILE).exists():
         joints = read_joints_csv(root / JOINTS_FILE)
     stamps = [s_ts[i] for i, _ in pairing.pairs]
     jidx = nearest_within(stamps, joints[0], tolerance_ns) if joints is not None else None
