@@ -744,3 +744,34 @@ def test_joints_csv_that_is_a_folder_is_refused_not_ignored(tmp_path: Path) -> N
     (root / "joints.csv").mkdir()
     with pytest.raises(ValueError, match=r"joints.csv: is a folder; expected a joints.csv file"):
         ImageFolder(root)
+
+
+@pytest.mark.parametrize(
+    ("which", "line", "needle"),
+    [
+        ("ground_truth", "3.0 0 nan 0 0 0 0 1", "gt.tum:5: ty must be a finite number"),
+        ("ground_truth", "1.5 0 0 0 0 0 0 1", "gt.tum:5: timestamp 1.5 s does not increase"),
+        ("trajectory", "3.0 0 0 0 0 0 1", "trajectory.tum:5: expected 8 columns"),
+    ],
+    ids=["gt_nan", "gt_not_increasing", "estimate_columns"],
+)
+def test_cli_evaluate_refuses_bad_trajectories(
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    which: str,
+    line: str,
+    needle: str,
+) -> None:
+    poses = "".join(f"{k}.0 {0.1 * k} 0 0 0 0 0 1\n" for k in range(3))
+    run = tmp_path / "run"
+    run.mkdir()
+    gt = tmp_path / "gt.tum"
+    (run / "trajectory.tum").write_text(
+        "# t tx ty tz qx qy qz qw\n" + poses + (line + "\n" if which == "trajectory" else "")
+    )
+    gt.write_text("# t tx ty tz qx qy qz qw\n" + poses + (line + "\n" if which == "ground_truth" else ""))
+    before = sorted(p.name for p in run.iterdir())
+    assert main(["evaluate", str(run), "--ground-truth", str(gt)]) == 2
+    err = capsys.readouterr().err
+    assert needle in err and "Traceback" not in err
+    assert sorted(p.name for p in run.iterdir()) == before  # no evaluation.json, no figures
