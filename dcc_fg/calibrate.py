@@ -106,8 +106,13 @@ class CalibrationOptions:
             raise ValueError(f"mode '{self.mode}' is not one of {', '.join(MODES)}")
         if self.formulation not in FORMULATIONS:
             raise ValueError(f"formulation '{self.formulation}' is not one of {', '.join(FORMULATIONS)}")
-        if self.pixel_sigma is not None and not self.pixel_sigma > 0:
-            raise ValueError("pixel_sigma must be positive")
+        if self.pixel_sigma is not None and not (np.isfinite(self.pixel_sigma) and self.pixel_sigma > 0):
+            raise ValueError(f"pixel_sigma must be a positive number of pixels, got {self.pixel_sigma}")
+        if not (isinstance(self.max_iterations, int | np.integer) and self.max_iterations >= 1):
+            raise ValueError(
+                f"max_iterations must be an integer >= 1, got {self.max_iterations!r} (with 0 Levenberg-Marquardt "
+                "would write the initial values as the calibration)"
+            )
 
 
 @dataclass
@@ -478,6 +483,14 @@ def calibrate(
         T_ds_covariances=cov.T_ds,
     )
     out.extra["covariance"] = cov.note
+    # for the health checks (dcc_fg.calibration_health): the per-image PnP poses of both cameras and
+    # the solver's stopping state
+    out.extra["pnp_T_st"], out.extra["pnp_T_dt"] = problem.T_st0, problem.T_dt0
+    out.extra["solver"] = {
+        "max_iterations": int(opt.max_iterations),
+        "next_decrease": float(solved.next_decrease),
+        "sigma": float(problem.sigma),
+    }
     cal.statistics = summary_statistics(out)
     return out
 

@@ -213,12 +213,18 @@ def lm_params(max_iterations: int) -> gtsam.LevenbergMarquardtParams:
 @dataclass
 class GraphSolution:
     """The optimized values and the solver report (errors are GTSAM's 0.5 * sum of squared
-    whitened residuals)."""
+    whitened residuals).
+
+    ``next_decrease``: when the solve stopped on the iteration cap, the error decrease one more
+    Levenberg-Marquardt iteration would have made (GTSAM error units; the convergence health check
+    compares it with the noise); NaN when it stopped on its tolerances.
+    """
 
     values: gtsam.Values
     iterations: int
     initial_error: float
     final_error: float
+    next_decrease: float = float("nan")
 
 
 def solve_graph(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, max_iterations: int) -> GraphSolution:
@@ -231,8 +237,13 @@ def solve_graph(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, max_ite
     ):
         initial_error = graph.error(values)
         optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, lm_params(max_iterations))
-        result = optimizer.optimize()
-        return GraphSolution(result, optimizer.iterations(), initial_error, graph.error(result))
+        result = gtsam.Values(optimizer.optimize())
+        iterations, final_error = optimizer.iterations(), graph.error(result)
+        next_decrease = float("nan")
+        if iterations >= max_iterations:  # stopped on the cap: how much was still to gain?
+            optimizer.iterate()
+            next_decrease = max(final_error - optimizer.error(), 0.0)
+        return GraphSolution(result, iterations, initial_error, final_error, next_decrease)
 
 
 @dataclass

@@ -1,15 +1,647 @@
 """Health checks of a calibration / validation result (see :mod:`dcc_fg.util.health`).
 
-Placeholder: filled in by the calibration-health work of issue 13.
+A calibration that estimates the pixel noise from its own residuals cannot judge its model with
+them: a wrong model (too few joints, wrong pairing, joint readings in degrees) just estimates a
+large noise. The checks here compare the result with a **noise floor that does not depend on the
+kinematic model**: a free 6-DOF target pose per camera per snapshot (per-image PnP, refined on the
+pixel error). Its residual sum of squares ``SS_floor`` has ``2N - 6`` degrees of freedom per image
+and measures the corner noise plus whatever the intrinsics cannot fit. Every DCC model is a
+constrained version of it (bundle: one target pose per snapshot, ``T_ds(theta)`` from the chain),
+so under a correct model the extra sum of squares ``SS_model - SS_floor`` is ``sigma^2 chi2(q)``
+with ``q = 6K - K L_est - n_kin_free + n_gauge_offsets`` (the parameters the model saves).
+
+Checks (name: statistic, threshold):
+
+* ``residuals.static`` / ``residuals.dynamic``: F-test of the extra sum of squares of the camera
+  against the camera's floor variance (``F = (dSS / q) / s2``, limit the F quantile at
+  :data:`~dcc_fg.util.health.FALSE_ALARM_PROBABILITY` with ``(q, 2N - 6K)`` degrees of freedom; one
+  camera's share of the extra sum is at most all of it, so ``q`` is conservative), combined with an
+  effect size: the camera's RMS residual must also exceed :data:`RMS_RATIO_LIMIT` times the floor
+  (a systematic error at least sqrt(3) times the noise itself: real intrinsics misfit and slight
+  non-rigidity stay below it, a wrong model is far above it).
+* ``residuals.snapshots``: per snapshot, ``dSS_i / s2`` against the chi-square quantile at
+  :data:`SNAPSHOT_ALPHA` with ``6 - L_est`` degrees of freedom, plus the same RMS ratio against the
+  larger of the pooled and the snapshot's own floor; the number of failing snapshots against the
+  binomial quantile of ``K`` trials at ``SNAPSHOT_ALPHA`` (at the false-alarm probability).
+* ``residuals.pixel_sigma`` (only when the user gave ``pixel_sigma``): the whitened sum of squares
+  against ``chi2(dof)`` of the model, with the same RMS-ratio margin over the given sigma.
+* ``convergence``: non-finite cost; zero iterations with a cost above the noise (the initial
+  values written as the result); the iteration cap reached while one more iteration would still
+  lower the cost by more than one unit of chi-square (``dSS / s2 > 1``).
+* ``finite``: kinematics, joint angles, target poses, standard deviations and ``T_ds`` covariances
+  are finite (NaN standard deviations only for unobservable parameters), variances non-negative.
+* ``joint_angles``: estimated joint angles spanning more than a full turn (2 pi) per joint;
+  ``encoders`` mode: readings beyond +-2 pi (joints.csv in degrees instead of radians).
+* ``pairing.shift``: the PnP ``T_ds`` of every snapshot re-paired with the neighbouring dynamic
+  image (shift +-1) and the chain re-fitted at the pose level (:func:`dcc_fg.init.pose_level_refine`,
+  joint angles free); the given pairing fails when a shift lowers the pose-level sum of squares by
+  more than the F quantile (equal degrees of freedom) and by more than ``RMS_RATIO_LIMIT**2``.
+* ``pairing.stamps`` (when the reader reports them): the median stamp gap between paired images
+  against a quarter of the frame period, the median gap of nearest-neighbour pairing of two
+  free-running (unsynchronized) cameras.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy import stats
+
 from dcc_fg.calibrate import CalibrationResult
+from dcc_fg.calibration_graph import gauge_fixed_joint_offsets, gauge_fixed_kin, snapshot_measurements
 from dcc_fg.data import CalibrationDataset
-from dcc_fg.util.health import HealthReport
+from dcc_fg.init import mean_pose, pnp_pose, pose_level_refine, tangent_error
+from dcc_fg.util.health import FALSE_ALARM_PROBABILITY, HealthCheck, HealthReport
+from factors import chain
+from factors.camera import CameraModel
+
+FloatArray = NDArray[np.float64]
+
+#: Effect size of the residual tests: a model fails only if its RMS residual per axis also exceeds
+#: the noise floor by this factor (its systematic error is then at least sqrt(3) times the noise).
+RMS_RATIO_LIMIT = 2.0
+#: Level of the per-snapshot test; the count of failing snapshots is tested against Binomial(K, alpha).
+SNAPSHOT_ALPHA = 1e-3
+#: Gauss-Newton iterations of the per-image pose refinement on the pixel error (starts at PnP).
+FLOOR_ITERATIONS = 8
+#: Full turn: joint angles (or readings) spanning more than this are outside any physical range.
+FULL_TURN = 2.0 * np.pi
+#: Pose-level whitening of the pairing check, rad and m (the same for every pairing compared).
+PAIRING_SIGMA_ROT, PAIRING_SIGMA_TRANS = 1e-3, 1e-3
+#: The pairing check uses at most this many consecutive snapshot triples (evenly spread), so its
+#: cost does not grow with the data set; its pose-level fits stop at this relative cost decrease
+#: (the compared sums of squares differ by factors, not by parts in 1e4) or iteration count.
+PAIRING_MAX_PAIRS, PAIRING_REL_TOL, PAIRING_ITERATIONS = 30, 1e-4, 15
+CAMERAS = ("static", "dynamic")
 
 
-def calibration_health(result: CalibrationResult, data: CalibrationDataset) -> HealthReport:
-    """Every health check of ``result`` (estimated from ``data``)."""
-    return HealthReport("calibration")
+# ------------------------------------------------------------------ the noise floor
+
+
+def _rotation_exp(omega: FloatArray) -> FloatArray:
+    """Rotation matrices (M, 3, 3) of rotation vectors (M, 3), rad (Rodrigues)."""
+    theta = np.linalg.norm(omega, axis=1)
+    small = theta < 1e-12
+    safe = np.where(small, 1.0, theta)
+    k = omega / safe[:, None]
+    Kx = np.zeros((len(omega), 3, 3))
+    Kx[:, 0, 1], Kx[:, 0, 2], Kx[:, 1, 2] = -k[:, 2], k[:, 1], -k[:, 0]
+    Kx[:, 1, 0], Kx[:, 2, 0], Kx[:, 2, 1] = k[:, 2], -k[:, 1], k[:, 0]
+    s, c = np.sin(theta)[:, None, None], (1.0 - np.cos(theta))[:, None, None]
+    R = np.eye(3)[None] + s * Kx + c * (Kx @ Kx)
+    R[small] = np.eye(3)
+    return R
+
+
+def pose_residual_jacobian(camera: CameraModel, p_c: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Pixels (N, 2) of camera-frame points (N, 3), m, and their Jacobian (N, 2, 6) with respect to a
+    left perturbation ``[omega, v]`` of the pose ``T_ct`` (``p_c -> Exp(omega) p_c + v``)."""
+    uv, J_p = camera.project(p_c, jacobian=True)
+    assert J_p is not None
+    D = np.zeros((len(p_c), 3, 6))
+    D[:, 0, 1], D[:, 0, 2], D[:, 1, 2] = p_c[:, 2], -p_c[:, 1], p_c[:, 0]
+    D[:, 1, 0], D[:, 2, 0], D[:, 2, 1] = -p_c[:, 2], p_c[:, 1], -p_c[:, 0]
+    D[:, :, 3:] = np.eye(3)
+    return uv, J_p @ D
+
+
+def refine_poses(
+    camera: CameraModel, p_t: list[FloatArray], uv: list[FloatArray], T0: FloatArray, iterations: int = FLOOR_ITERATIONS
+) -> tuple[FloatArray, FloatArray]:
+    """Per image, the target pose ``T_ct`` (M, 4, 4) minimizing the pixel error and its residual sum of
+    squares (M,), px^2: damped Gauss-Newton from ``T0`` on all images at once (steps that do not
+    lower an image's sum of squares are refused for that image)."""
+    M = len(uv)
+    counts = np.array([len(z) for z in uv])
+    start = np.r_[0, np.cumsum(counts)[:-1]]
+    P, Z = np.concatenate(p_t), np.concatenate(uv)
+    img = np.repeat(np.arange(M), counts)
+    R, t = T0[:, :3, :3].copy(), T0[:, :3, 3].copy()
+
+    def evaluate(R: FloatArray, t: FloatArray, jac: bool) -> tuple[FloatArray, FloatArray, FloatArray | None]:
+        p_c = np.einsum("nij,nj->ni", R[img], P) + t[img]
+        if jac:
+            uv_hat, J = pose_residual_jacobian(camera, p_c)
+        else:
+            uv_hat, J = camera.project(p_c, jacobian=False)[0], None
+        r = uv_hat - Z
+        return r, np.add.reduceat(np.sum(r * r, axis=1), start), J
+
+    r, ss, J = evaluate(R, t, True)
+    lam = np.full(M, 1e-6)
+    for _ in range(iterations):
+        assert J is not None
+        A = np.zeros((M, 6, 6))
+        b = np.zeros((M, 6))
+        np.add.at(A, img, np.einsum("nki,nkj->nij", J, J))
+        np.add.at(b, img, np.einsum("nki,nk->ni", J, r))
+        diag = np.einsum("mii->mi", A)
+        A_damped = A + (lam[:, None] * (diag + 1e-12))[:, :, None] * np.eye(6)[None]
+        step = -np.linalg.solve(A_damped, b[:, :, None])[:, :, 0]
+        dR = _rotation_exp(step[:, :3])
+        R_new = dR @ R
+        t_new = np.einsum("mij,mj->mi", dR, t) + step[:, 3:]
+        r_new, ss_new, J_new = evaluate(R_new, t_new, True)
+        better = np.isfinite(ss_new) & (ss_new < ss)
+        R[better], t[better] = R_new[better], t_new[better]
+        ss = np.where(better, ss_new, ss)
+        lam = np.where(better, lam * 0.1, lam * 10.0)
+        keep = better[img]
+        r = np.where(keep[:, None], r_new, r)
+        assert J_new is not None
+        J = np.where(keep[:, None, None], J_new, J)
+    T = np.tile(np.eye(4), (M, 1, 1))
+    T[:, :3, :3], T[:, :3, 3] = R, t
+    return T, ss
+
+
+@dataclass
+class NoiseFloor:
+    """The model-independent noise floor: per snapshot a free target pose in each camera.
+
+    Attributes:
+        T_st / T_dt: (K, 4, 4) target poses in the static / dynamic camera, refined on pixels.
+        ss: (K, 2) residual sums of squares, px^2, columns [static, dynamic].
+        n: (K, 2) corner counts.
+    """
+
+    T_st: FloatArray
+    T_dt: FloatArray
+    ss: FloatArray
+    n: NDArray[np.int64]
+
+    def dof(self, cam: int) -> int:
+        """Degrees of freedom of camera ``cam``'s floor: 2 N - 6 per image."""
+        return int(np.sum(np.maximum(2 * self.n[:, cam] - 6, 0)))
+
+    def variance(self, cam: int) -> float:
+        """Floor variance per axis of camera ``cam``, px^2."""
+        return float(self.ss[:, cam].sum() / max(self.dof(cam), 1))
+
+
+def noise_floor(
+    data: CalibrationDataset, T_st0: FloatArray | None = None, T_dt0: FloatArray | None = None
+) -> NoiseFloor:
+    """Per-image PnP of both cameras (``T_st0`` / ``T_dt0``: PnP starts, computed when None), refined
+    on the pixel error; see :class:`NoiseFloor`."""
+    meas = [snapshot_measurements(data, s) for s in data.snapshots]
+    cams = (data.static_camera, data.dynamic_camera)
+    if T_st0 is None:
+        T_st0 = np.array([pnp_pose(cams[0], m.p_t_static, m.z_static) for m in meas])
+    if T_dt0 is None:
+        T_dt0 = np.array([pnp_pose(cams[1], m.p_t_dynamic, m.z_dynamic) for m in meas])
+    T_st, ss_s = refine_poses(cams[0], [m.p_t_static for m in meas], [m.z_static for m in meas], T_st0)
+    T_dt, ss_d = refine_poses(cams[1], [m.p_t_dynamic for m in meas], [m.z_dynamic for m in meas], T_dt0)
+    n = np.array([[len(s.static), len(s.dynamic)] for s in data.snapshots], dtype=np.int64)
+    return NoiseFloor(T_st, T_dt, np.column_stack([ss_s, ss_d]), n)
+
+
+# ------------------------------------------------------------------ helpers
+
+
+def _culprits(result: CalibrationResult) -> str:
+    """What a model that does not fit its images most likely got wrong, by mode."""
+    mode, L = result.options.mode, result.calibration.n_joints
+    if mode == "validate":
+        return (
+            "the calibration does not fit these images (a different gimbal or camera mount, moved cameras, "
+            "other intrinsics) or the images are paired with the wrong partner"
+        )
+    if mode == "encoders":
+        return (
+            "the joint readings do not fit the images: joints.csv / JointState may be in degrees (radians needed), "
+            f"offset in time from the images, or the mechanism has more joints than {L}"
+        )
+    return f"the mechanism probably has more joints than --joints {L}, or the images are paired with the wrong partner"
+
+
+def _hint(result: CalibrationResult) -> str:
+    if result.options.mode == "validate":
+        return (
+            "check that --calibration belongs to this rig, the pairing of the images (--sync-tolerance) and "
+            "the intrinsics"
+        )
+    if result.options.mode == "encoders":
+        return "check the joint-angle units (radians), their time stamps, --joints, the intrinsics (--camchain)"
+    return "check --joints, the pairing of the images (time sync, --sync-tolerance), the intrinsics (--camchain)"
+
+
+def _n_model_parameters(result: CalibrationResult) -> tuple[int, int]:
+    """(free kinematic entries minus held mean joint angles, joint angles estimated per snapshot)."""
+    L, mode = result.calibration.n_joints, result.options.mode
+    if mode == "validate":
+        return 0, L
+    fixed = gauge_fixed_kin(L, mode)
+    n_free = int((~fixed).sum()) - len(gauge_fixed_joint_offsets(L, mode))
+    return n_free, (L if mode == "encoderless" else 0)
+
+
+def _model_ss(result: CalibrationResult) -> FloatArray:
+    """(K, 2) residual sums of squares of the model, px^2, columns [static, dynamic]."""
+    return np.array(
+        [
+            [float(np.sum(a * a)), float(np.sum(b * b))]
+            for a, b in zip(result.residuals_static, result.residuals_dynamic, strict=True)
+        ]
+    )
+
+
+# ------------------------------------------------------------------ residual checks
+
+
+def _camera_f_tests(result: CalibrationResult, floor: NoiseFloor) -> list[tuple[float, float, int, float, float]]:
+    """Per camera: (F statistic, its limit, q, RMS residual px, floor RMS px) of the extra sum of squares."""
+    K = floor.ss.shape[0]
+    ss_model = _model_ss(result)
+    n_kin, L_est = _n_model_parameters(result)
+    q = max(6 * K - K * L_est - n_kin, 1)
+    out = []
+    for c in range(2):
+        s2 = max(floor.variance(c), 1e-18)
+        n_obs = 2 * int(floor.n[:, c].sum())
+        d_ss = max(float(ss_model[:, c].sum() - floor.ss[:, c].sum()), 0.0)
+        F_lim = float(stats.f.ppf(1.0 - FALSE_ALARM_PROBABILITY, q, max(floor.dof(c), 1)))
+        out.append((d_ss / q / s2, F_lim, q, float(np.sqrt(ss_model[:, c].sum() / n_obs)), float(np.sqrt(s2))))
+    return out
+
+
+def residuals_significant(result: CalibrationResult, floor: NoiseFloor) -> bool:
+    """Whether either camera's extra sum of squares over the floor is statistically significant
+    (the F-test alone, without the effect-size margin), or not finite."""
+    return any(not (F <= lim) for F, lim, *_ in _camera_f_tests(result, floor))
+
+
+def residual_checks(result: CalibrationResult, floor: NoiseFloor) -> list[HealthCheck]:
+    """``residuals.static`` / ``residuals.dynamic``, ``residuals.snapshots`` and (when the user gave
+    ``pixel_sigma``) ``residuals.pixel_sigma``; see the module docstring."""
+    out = []
+    K = floor.ss.shape[0]
+    ss_model = _model_ss(result)
+    n_kin, L_est = _n_model_parameters(result)
+    p = FALSE_ALARM_PROBABILITY
+    s2 = np.array([max(floor.variance(c), 1e-18) for c in range(2)])
+    for c, (cam, (F, F_lim, q, rms, rms_floor)) in enumerate(zip(CAMERAS, _camera_f_tests(result, floor), strict=True)):
+        ratio = rms / rms_floor
+        passed = not (F > F_lim and ratio > RMS_RATIO_LIMIT) and np.isfinite(rms)
+        text = (
+            f"residuals {rms:.3g} px RMS per axis in the {cam} camera for a {rms_floor:.3g} px noise floor "
+            f"(PnP of each image): {ratio:.1f}x the floor (limit {RMS_RATIO_LIMIT:g}x), F = {F:.3g} "
+            f"(limit {F_lim:.3g}, {q} and {floor.dof(c)} degrees of freedom)"
+        )
+        if not passed:
+            text += f": {_culprits(result)}"
+        out.append(
+            HealthCheck(f"residuals.{cam}", bool(passed), text, "" if passed else _hint(result), ratio, RMS_RATIO_LIMIT)
+        )
+
+    # per snapshot: both cameras' extra sum of squares over their floor variance
+    d_ss_i = np.maximum(ss_model - floor.ss, 0.0) / s2[None, :]
+    q_i = d_ss_i.sum(axis=1)
+    dof_i = max(6 - L_est, 1)
+    chi_lim = float(stats.chi2.ppf(1.0 - SNAPSHOT_ALPHA, dof_i))
+    own = floor.ss / np.maximum(2 * floor.n - 6, 1)
+    var_ref = np.maximum(own, s2[None, :])
+    ratio_i = np.sqrt(((ss_model / np.maximum(2 * floor.n, 1)) / var_ref).max(axis=1))
+    bad = np.flatnonzero((q_i > chi_lim) & (ratio_i > RMS_RATIO_LIMIT))
+    allowed = int(stats.binom.ppf(1.0 - p, K, SNAPSHOT_ALPHA))
+    passed = len(bad) <= allowed
+    text = (
+        f"{len(bad)} of {K} snapshots fit far worse than their per-image PnP (chi-square at {SNAPSHOT_ALPHA:g} with "
+        f"{dof_i} degrees of freedom and over {RMS_RATIO_LIMIT:g}x their floor; at most {allowed} expected)"
+    )
+    if not passed:
+        worst = bad[np.argsort(-q_i[bad])][:5]
+        stamps = ", ".join(f"{int(i)} (t={int(result.timestamps_ns[i])} ns, {ratio_i[i]:.1f}x)" for i in worst)
+        text += f"; worst: {stamps}: {_culprits(result)}, or wrong corner detections in those images"
+    out.append(
+        HealthCheck(
+            "residuals.snapshots",
+            bool(passed),
+            text,
+            "" if passed else _hint(result) + "; drop the listed images if only a few fail",
+            float(len(bad)),
+            float(allowed),
+        )
+    )
+
+    sigma = result.options.pixel_sigma
+    if sigma is not None:
+        n_obs = 2 * int(floor.n.sum())
+        dof = max(n_obs - (6 * K + K * L_est + n_kin), 1)
+        chi = float(ss_model.sum()) / sigma**2
+        lim = float(stats.chi2.ppf(1.0 - p, dof))
+        rms = float(np.sqrt(ss_model.sum() / n_obs))
+        passed = not (chi > lim and rms > RMS_RATIO_LIMIT * sigma)
+        text = (
+            f"residuals {rms:.3g} px RMS per axis for the given pixel_sigma {sigma:g} px: chi-square {chi:.4g} "
+            f"(limit {lim:.4g}, {dof} degrees of freedom)"
+        )
+        if not passed:
+            floor_rms = float(np.sqrt(floor.ss.sum() / max(floor.dof(0) + floor.dof(1), 1)))
+            if floor_rms > RMS_RATIO_LIMIT * sigma:
+                text += (
+                    f": the per-image PnP floor is {floor_rms:.3g} px too, so the corner noise is larger than "
+                    "--pixel-sigma"
+                )
+            else:
+                text += f": {_culprits(result)}"
+        out.append(
+            HealthCheck(
+                "residuals.pixel_sigma",
+                bool(passed),
+                text,
+                "" if passed else "give a --pixel-sigma that matches the detector, or omit it to estimate it",
+                rms / sigma,
+                RMS_RATIO_LIMIT,
+            )
+        )
+    return out
+
+
+# ------------------------------------------------------------------ solver and ranges
+
+
+def convergence_check(result: CalibrationResult, floor: NoiseFloor) -> HealthCheck:
+    """``convergence``: finite cost, at least one iteration unless already at the noise, and no
+    iteration cap reached while still descending by more than one chi-square unit per iteration."""
+    solver = result.extra.get("solver", {})
+    sigma = float(solver.get("sigma", result.options.pixel_sigma or 1.0))
+    s2 = float(floor.ss.sum() / max(floor.dof(0) + floor.dof(1), 1))
+    s2 = max(s2, 1e-18)
+    hint = "check the initial values (--gimbal, or --init auto) and the solver options (max_iterations)"
+    if not (np.isfinite(result.final_error) and np.isfinite(result.initial_error)):
+        return HealthCheck(
+            "convergence",
+            False,
+            f"the cost is not finite (initial {result.initial_error}, final {result.final_error})",
+            hint,
+        )
+    K = floor.ss.shape[0]
+    n_kin, L_est = _n_model_parameters(result)
+    n_obs = 2 * int(floor.n.sum())
+    dof = max(n_obs - (6 * K + K * L_est + n_kin), 1)
+    ss_final = 2.0 * result.final_error * sigma**2  # px^2
+    chi_final = ss_final / s2
+    at_noise = chi_final <= float(stats.chi2.ppf(1.0 - FALSE_ALARM_PROBABILITY, dof)) * RMS_RATIO_LIMIT**2
+    if result.iterations == 0 and not at_noise:
+        return HealthCheck(
+            "convergence",
+            False,
+            f"Levenberg-Marquardt ran 0 iterations with a cost {chi_final:.4g} times the noise floor variance "
+            f"({dof} degrees of freedom): the result is the initial guess",
+            hint,
+            0.0,
+            1.0,
+        )
+    cap = int(solver.get("max_iterations", result.options.max_iterations))
+    next_dec = float(solver.get("next_decrease", np.nan))
+    remaining = 2.0 * next_dec * sigma**2 / s2 if np.isfinite(next_dec) else 0.0
+    if result.iterations >= cap and remaining > 1.0:
+        return HealthCheck(
+            "convergence",
+            False,
+            f"Levenberg-Marquardt stopped on its cap of {cap} iterations while still lowering the cost by "
+            f"{remaining:.3g} chi-square units per iteration (limit 1): not converged",
+            "raise max_iterations, or start closer (--gimbal with better values, --init auto)",
+            remaining,
+            1.0,
+        )
+    return HealthCheck(
+        "convergence",
+        True,
+        f"{result.iterations} iterations (cap {cap}); remaining decrease {remaining:.3g} chi-square units",
+    )
+
+
+def finite_check(result: CalibrationResult) -> HealthCheck:
+    """``finite``: estimates, standard deviations and covariances are finite numbers (NaN standard
+    deviations only where a parameter is unobservable or covariances are unavailable)."""
+    bad = []
+    cal = result.calibration
+    if not np.all(np.isfinite(cal.kin)):
+        bad.append(
+            "kinematic parameters "
+            + ", ".join(n for n, v in zip(cal.names, cal.kin, strict=True) if not np.isfinite(v))
+        )
+    if not np.all(np.isfinite(result.joint_angles)):
+        bad.append("joint angles")
+    if not np.all(np.isfinite(result.T_st)):
+        bad.append("target poses")
+    if result.extra.get("covariance", "ok") == "ok":
+        if result.options.mode != "validate" and cal.kin_std is not None and cal.observable is not None:
+            fixed = cal.gauge_fixed if cal.gauge_fixed is not None else np.zeros(len(cal.kin), dtype=bool)
+            need = cal.observable & ~fixed
+            std = np.asarray(cal.kin_std)
+            if not np.all(np.isfinite(std[need])) or np.any(std[np.isfinite(std)] < 0):
+                bad.append("standard deviations of observable kinematic parameters")
+        if result.options.mode != "encoders" and result.joint_angle_std.size:
+            if not np.all(np.isfinite(result.joint_angle_std)):
+                bad.append("joint-angle standard deviations")
+        cov = result.T_ds_covariances
+        if cov is not None and len(cov):
+            diag = np.einsum("kii->ki", cov)
+            if not np.all(np.isfinite(cov)) or np.any(diag < 0):
+                bad.append("T_ds covariances (non-finite or negative variances)")
+    if bad:
+        return HealthCheck(
+            "finite",
+            False,
+            "non-finite or negative values in: " + "; ".join(bad),
+            "the problem is numerically degenerate: check the initial values and that every joint moves",
+        )
+    return HealthCheck("finite", True, "estimates, standard deviations and covariances are finite")
+
+
+def joint_angle_checks(result: CalibrationResult, data: CalibrationDataset) -> list[HealthCheck]:
+    """``joint_angles``: estimated angles span at most a full turn per joint; ``encoders`` mode:
+    readings within +-2 pi (larger values are degrees, not radians)."""
+    out = []
+    th = np.asarray(result.joint_angles, float)
+    L = result.calibration.n_joints
+    if L == 0 or th.size == 0:
+        return out
+    if result.options.mode == "encoders":
+        readings = np.array([np.asarray(s.joints, float) for s in data.snapshots if s.joints is not None])
+        biggest = float(np.max(np.abs(readings))) if readings.size else 0.0
+        passed = biggest <= FULL_TURN
+        text = f"joint readings within +-{biggest:.4g} (limit {FULL_TURN:.4g} rad)"
+        if not passed:
+            text = (
+                f"joint readings reach {biggest:.4g}, beyond a full turn ({FULL_TURN:.4g} rad): joints.csv / "
+                "JointState is probably in degrees, but radians are needed"
+            )
+        out.append(
+            HealthCheck(
+                "joint_angles.readings",
+                bool(passed),
+                text,
+                "" if passed else "convert the joint readings to radians (multiply degrees by pi/180)",
+                biggest,
+                FULL_TURN,
+            )
+        )
+    span = np.ptp(th, axis=0) if np.all(np.isfinite(th)) else np.full(L, np.inf)
+    worst = int(np.argmax(span))
+    passed = bool(span[worst] <= FULL_TURN)
+    text = f"joint {worst + 1} spans {span[worst]:.4g} rad (limit a full turn, {FULL_TURN:.4g} rad)"
+    if not passed:
+        text += ": the joint angles are not physical; the model probably does not fit the mechanism"
+    out.append(
+        HealthCheck(
+            "joint_angles.range",
+            passed,
+            text,
+            "" if passed else "check --joints and the initial joint angles",
+            float(span[worst]),
+            FULL_TURN,
+        )
+    )
+    return out
+
+
+# ------------------------------------------------------------------ pairing
+
+
+def _pose_level_ss(result: CalibrationResult, T_ds: FloatArray, thetas0: FloatArray) -> tuple[float, int]:
+    """Whitened pose-level sum of squares of the chain re-fitted to ``T_ds`` (K', 4, 4) (joint
+    angles free, kinematics from the result as the start) and its degrees of freedom."""
+    L, n = result.calibration.n_joints, len(T_ds)
+    w = np.r_[np.full(3, 1.0 / PAIRING_SIGMA_ROT), np.full(3, 1.0 / PAIRING_SIGMA_TRANS)]
+    if L == 0:
+        mean = mean_pose(T_ds)
+        e = np.array([tangent_error(T, mean) * w for T in T_ds])
+        return float(np.sum(e * e)), 6 * n - 6
+    validating = result.options.mode == "validate"
+    fixed = np.ones(chain.n_kin(L), dtype=bool) if validating else gauge_fixed_kin(L, "encoderless")
+    offsets = [] if validating else gauge_fixed_joint_offsets(L, "encoderless")
+    _, _, rms = pose_level_refine(
+        result.calibration.kin,
+        L,
+        T_ds,
+        thetas0,
+        ~fixed,
+        offsets,
+        True,
+        PAIRING_SIGMA_ROT,
+        PAIRING_SIGMA_TRANS,
+        PAIRING_ITERATIONS,
+        PAIRING_REL_TOL,
+    )
+    n_par = int((~fixed).sum()) - len(offsets) + n * L
+    return float(rms**2 * 6 * n), max(6 * n - n_par, 1)
+
+
+def pairing_shift_check(result: CalibrationResult, floor: NoiseFloor) -> HealthCheck | None:
+    """``pairing.shift``: would pairing each static image with the neighbouring dynamic image fit the
+    chain much better than the given pairing? (Module docstring.) None when too few snapshots."""
+    K = floor.T_st.shape[0]
+    L = result.calibration.n_joints
+    idx = np.arange(1, K - 1)
+    if len(idx) > PAIRING_MAX_PAIRS:
+        idx = np.unique(np.linspace(1, K - 2, PAIRING_MAX_PAIRS).round().astype(np.int64))
+    if len(idx) * (6 - L) < 12 + 3 * L:
+        return None
+    thetas = np.asarray(result.joint_angles, float).reshape(K, L)
+    ss: dict[int, float] = {}
+    dof = 1
+    for shift in (0, 1, -1):
+        T_ds = floor.T_dt[idx + shift] @ np.linalg.inv(floor.T_st[idx])
+        ss[shift], dof = _pose_level_ss(result, T_ds, thetas[idx + shift])
+    best = min((1, -1), key=lambda h: ss[h])
+    gain = ss[0] / max(ss[best], 1e-300)
+    limit = max(float(stats.f.ppf(1.0 - FALSE_ALARM_PROBABILITY, dof, dof)), RMS_RATIO_LIMIT**2)
+    passed = not gain > limit
+    text = (
+        f"pairing each static image with the dynamic image {best:+d} snapshot away fits {gain:.3g} times "
+        f"{'better' if gain >= 1 else 'as well'} at the pose level (limit {limit:.3g})"
+    )
+    if not passed:
+        text = (
+            f"the static and dynamic images seem paired with the wrong partner (shifting by one fits {gain:.3g} times "
+            f"better, limit {limit:.3g}): the cameras' stamps are probably offset by one frame period"
+        )
+    return HealthCheck(
+        "pairing.shift",
+        bool(passed),
+        text,
+        "" if passed else "check the time sync of the cameras / --sync-tolerance",
+        gain,
+        limit,
+    )
+
+
+def _number(d: dict[str, Any], *words: str) -> float | None:
+    """The first numeric value (or median of a per-camera dict) of a key containing every word."""
+    for key, value in d.items():
+        if all(w in key for w in words):
+            if isinstance(value, dict):
+                vals = [float(v) for v in value.values() if isinstance(v, int | float)]
+                if vals:
+                    return float(min(vals))
+            elif isinstance(value, int | float) and np.isfinite(value):
+                return float(value)
+    return None
+
+
+def pairing_stamp_check(reader_report: dict[str, Any] | None) -> HealthCheck | None:
+    """``pairing.stamps``: the median stamp gap of the pairs against a quarter of the frame period
+    (the median gap of nearest-neighbour pairing of free-running cameras); None without the numbers."""
+    pairing = (reader_report or {}).get("pairing")
+    if not isinstance(pairing, dict):
+        return None
+    gap = _number(pairing, "median", "gap")
+    period = _number(pairing, "period")
+    if gap is None or period is None or not period > 0:
+        return None
+    limit = 0.25 * period
+    passed = gap <= limit
+    text = f"median stamp gap of the pairs {gap:.3g} ms for a frame period of {period:.3g} ms (limit {limit:.3g} ms)"
+    if not passed:
+        text += ": the cameras do not look synchronized, so the pairs show the target at different times"
+    return HealthCheck(
+        "pairing.stamps",
+        bool(passed),
+        text,
+        ""
+        if passed
+        else "synchronize the cameras (hardware trigger) or hold the target still per snapshot; check --sync-tolerance",
+        gap,
+        limit,
+    )
+
+
+# ------------------------------------------------------------------ all of them
+
+
+def calibration_health(
+    result: CalibrationResult, data: CalibrationDataset, reader_report: dict[str, Any] | None = None
+) -> HealthReport:
+    """Every health check of ``result`` (estimated from ``data``; ``reader_report``: the reader's
+    report of :func:`dcc_fg.commands.calibrate.load_calibration_data`, whose ``pairing`` block is used
+    when present). The report's subject is ``calibration`` or ``validation``."""
+    report = HealthReport("validation" if result.options.mode == "validate" else "calibration")
+    report.add(finite_check(result))
+    floor = noise_floor(data, result.extra.get("pnp_T_st"), result.extra.get("pnp_T_dt"))
+    report.extend(residual_checks(result, floor))
+    report.add(convergence_check(result, floor))
+    report.extend(joint_angle_checks(result, data))
+    if not residuals_significant(result, floor):
+        report.add(
+            HealthCheck(
+                "pairing.shift",
+                True,
+                "not run: the residuals are at the noise floor in both cameras (F-test passed), so no other pairing "
+                "can fit much better",
+            )
+        )
+    elif np.all(np.isfinite(result.joint_angles)) and np.all(np.isfinite(result.calibration.kin)):
+        shift = pairing_shift_check(result, floor)
+        if shift is not None:
+            report.add(shift)
+    stamps = pairing_stamp_check(reader_report)
+    if stamps is not None:
+        report.add(stamps)
+    return report

@@ -212,12 +212,14 @@ class PoseLevelProblem:
         return Bg - BGt @ np.linalg.solve(S, G @ Bg)
 
 
-def levenberg_marquardt(problem: PoseLevelProblem, max_iterations: int) -> tuple[FloatArray, FloatArray]:
+def levenberg_marquardt(
+    problem: PoseLevelProblem, max_iterations: int, rel_tol: float = 1e-12
+) -> tuple[FloatArray, FloatArray]:
     """Minimize ``|r(x)|^2`` of a :class:`PoseLevelProblem` from ``problem.x0()``.
 
     Marquardt damping of the diagonal, lambda from 1e-3, divided by 3 after an accepted step (down to
     1e-9) and multiplied by 4 after a rejected one (giving up above 1e10); stops after an accepted step
-    that lowers the cost by less than 1e-12 of it, or after ``max_iterations`` steps.
+    that lowers the cost by less than ``rel_tol`` of it, or after ``max_iterations`` steps.
     Returns (x, residual at x).
     """
     x = problem.x0()
@@ -231,7 +233,7 @@ def levenberg_marquardt(problem: PoseLevelProblem, max_iterations: int) -> tuple
         cost_new = float(r_new @ r_new)
         if cost_new < cost:
             x = x + step
-            converged = cost - cost_new < 1e-12 * cost
+            converged = cost - cost_new < rel_tol * cost
             r, J = problem.residual(x, True)
             cost = cost_new
             lam = max(lam / 3.0, 1e-9)
@@ -255,6 +257,7 @@ def pose_level_refine(
     sigma_rot: float = 1e-3,
     sigma_trans: float = 1e-3,
     max_iterations: int = 200,
+    rel_tol: float = 1e-12,
 ) -> tuple[FloatArray, FloatArray, float]:
     """Fit the chain to per-snapshot PnP transforms ``T_ds_i = T_dt_i inv(T_st_i)``.
 
@@ -264,11 +267,12 @@ def pose_level_refine(
     :func:`levenberg_marquardt` on a :class:`PoseLevelProblem`.
 
     Returns ``(kin, thetas, rms)`` where ``rms`` is the RMS of the whitened residual per row.
+    ``rel_tol``: relative cost decrease that stops the solve (:func:`levenberg_marquardt`).
     """
     problem = PoseLevelProblem(
         kin0, n_joints, T_ds_measured, thetas0, free, offset_joints, estimate_theta, sigma_rot, sigma_trans
     )
-    x, r = levenberg_marquardt(problem, max_iterations)
+    x, r = levenberg_marquardt(problem, max_iterations, rel_tol)
     kin, th = problem.unpack(x)
     return kin, th.copy(), float(np.sqrt(float(r @ r) / r.size))
 
