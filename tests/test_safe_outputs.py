@@ -476,3 +476,15 @@ def test_evaluate_only_into_a_vio_folder(tmp_path, capsys) -> None:  # noqa: ANN
     refused(["evaluate", str(cal), "--ground-truth", str(gt)], capsys, [tmp_path], str(cal),
             "result folder of 'dcc-fg calibrate'", "only into vio folders")  # fmt: skip
     refused(["evaluate", str(gt), "--ground-truth", str(gt)], capsys, [tmp_path], str(gt), "is a file")
+
+
+def test_unwritable_parent_is_refused_before_loading(
+    pipeline: Pipeline, inputs, tmp_path, capsys, monkeypatch: pytest.MonkeyPatch
+) -> None:  # noqa: ANN001
+    """(The tests run as root, for whom every folder is writable: os.access answers as for a user.)"""
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    monkeypatch.setattr(output_set.os, "access", lambda path, mode: Path(path) != locked)
+    out = locked / "a" / "out"
+    refused(calibrate_argv(inputs, out), capsys, [tmp_path], str(locked), "not writable (permission denied)")
+    assert pipeline.calls == []
