@@ -488,3 +488,24 @@ def test_unwritable_parent_is_refused_before_loading(
     out = locked / "a" / "out"
     refused(calibrate_argv(inputs, out), capsys, [tmp_path], str(locked), "not writable (permission denied)")
     assert pipeline.calls == []
+
+
+def test_staging_of_a_killed_run_is_cleaned_up(tmp_path: Path) -> None:
+    """A run killed with SIGKILL leaves its hidden staging folder; the next run into that folder
+    removes it, but never the staging folder of a live process or of another host."""
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    out = tmp_path / "o"
+    out.mkdir()
+    host = output_set._owner_tag().rsplit("-", 1)[0]
+    killed = out / f"{output_set.STAGING_TAG}{host}-{dead.pid}.abcd1234"
+    alive = out / f"{output_set.STAGING_TAG}{host}-{os.getpid()}.abcd1234"
+    remote = out / f"{output_set.STAGING_TAG}elsewhere-{dead.pid}.abcd1234"
+    beside = tmp_path / f".o{output_set.STAGING_TAG}{host}-{dead.pid}.abcd1234"
+    for d in (killed, alive, remote, beside):
+        d.mkdir()
+        (d / "calibration.yaml").write_text("half")
+    with OutputSet(out, "calibrate") as s:
+        (s.path / "calibration.yaml").write_text("new")
+    assert not killed.exists() and not beside.exists() and alive.exists() and remote.exists()
+    assert (out / "calibration.yaml").read_text() == "new"

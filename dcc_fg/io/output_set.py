@@ -44,6 +44,7 @@ import os
 import secrets
 import shutil
 import signal
+import socket
 import threading
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
@@ -282,16 +283,51 @@ class DeferredInterrupt:
             raise KeyboardInterrupt
 
 
+def _owner_tag() -> str:
+    """``<host>-<pid>``: which process a staging folder belongs to (part of its name)."""
+    host = "".join(c for c in socket.gethostname() if c.isalnum())[:24] or "host"
+    return f"{host}-{os.getpid()}"
+
+
 def _new_dir(parent: Path, prefix: str) -> Path:
-    """A fresh folder ``parent/<prefix><random>`` (created with the umask's permissions)."""
+    """A fresh folder ``parent/<prefix><host>-<pid>.<random>`` (created with the umask's permissions)."""
     for _ in range(100):
-        path = parent / f"{prefix}{secrets.token_hex(4)}"
+        path = parent / f"{prefix}{_owner_tag()}.{secrets.token_hex(4)}"
         try:
             path.mkdir()
             return path
         except FileExistsError:
             continue
     raise OutputWriteError(f"{parent}: cannot create a staging folder (100 names taken)", errno.EEXIST)
+
+
+def _process_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def remove_stale_staging(folder: Path) -> list[Path]:
+    """Remove the staging folders in ``folder`` left by runs of this host that were killed (SIGKILL,
+    power loss: no chance to clean up); folders of live processes and of other hosts are kept."""
+    removed: list[Path] = []
+    if not folder.is_dir():
+        return removed
+    host = _owner_tag().rsplit("-", 1)[0]
+    for p in folder.iterdir():
+        tag = next((t for t in (STAGING_TAG, REPLACED_TAG) if t in p.name), None)
+        if tag is None or not p.is_dir() or p.is_symlink():
+            continue
+        owner = p.name.split(tag, 1)[1].split(".", 1)[0]
+        h, _, pid = owner.rpartition("-")
+        if h == host and pid.isdigit() and not _process_alive(int(pid)):
+            shutil.rmtree(p, ignore_errors=True)
+            removed.append(p)
+    return removed
 
 
 def _write_error(exc: OSError, where: Path, out: Path, option: str) -> OutputWriteError:
@@ -427,6 +463,8 @@ class OutputSet:
     def __enter__(self) -> OutputSet:
         self.check()
         out = self.out
+        for folder in (out, out.parent):
+            remove_stale_staging(folder)
         try:
             if out.is_dir():
                 self.staging = _new_dir(out, STAGING_TAG)
