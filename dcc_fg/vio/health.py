@@ -15,8 +15,9 @@ their thresholds (``options``: :class:`~dcc_fg.vio.backend.options.VioOptions`; 
   segment that lasted at least one smoother window (``lag``) without diverging again;
 * ``velocity_covariance``: the final keyframe's velocity 1-sigma within ``max_velocity_sigma``;
 * ``vision``: the longest stretch of keyframes without any visual factor (landmark observation or
-  zero-velocity update) no longer than the smoother window ``lag``: beyond it the trajectory is
-  IMU dead reckoning (an IMU clock offset or rate problem, a camera facing nothing, ...);
+  zero-velocity update) no longer than two smoother windows (``2 lag``; one window can pass at a
+  start from standstill before the motion gives the parallax to triangulate): beyond it the
+  trajectory is IMU dead reckoning (an IMU clock offset or rate problem, a camera facing nothing);
 * ``segments`` (always passes, informative): how many trajectory segments the run has.
 
 Frames and units: ``T_WI`` body/IMU -> world, m, m/s, s.
@@ -158,19 +159,20 @@ def vio_health(result: VioResult, imu: ImuConfig, options: VioOptions) -> Health
         )
     blind = stats.get("longest_without_vision_s")
     if blind is not None:
-        ok = bool(blind <= options.lag)
+        limit = 2.0 * options.lag
+        ok = bool(blind <= limit)
         report.add(
             HealthCheck(
                 "vision",
                 ok,
-                f"longest stretch of keyframes without any visual factor: {blind:.2f} s (limit: the smoother window "
-                f"lag {options.lag:g} s)",
+                f"longest stretch of keyframes without any visual factor: {blind:.2f} s (limit: two smoother windows, "
+                f"2 x lag = {limit:g} s)",
                 ""
                 if ok
                 else "vision contributed nothing for that long (IMU dead reckoning): check the IMU clock offset and "
                 "rate against the images, the camera topics and calibration (T_sI), and --pixel-sigma",
                 blind,
-                options.lag,
+                limit,
             )
         )
     segments = stats.get("segments", [])

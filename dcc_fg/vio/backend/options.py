@@ -78,7 +78,7 @@ class VioOptions:
     imu_gap_periods: float = 5.0
     restart_rotation_sigma: float = 0.05
     restart_velocity_sigma: float = 1.0
-    restart_theta_sigma: float = 0.5
+    restart_theta_sigma: float = 0.1
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:

@@ -41,6 +41,7 @@ from dcc_fg.vio.backend.options import NS, FloatArray, InitialState, VioOptions,
 from dcc_fg.vio.backend.state import KeyframeState, result_from_states
 from dcc_fg.vio.backend.window import AnchorSigmas, FixedLagWindow, anchor_factors, window_start_ns
 from dcc_fg.vio.backend.zupt import static_tracks_at_rest, zero_velocity_factors
+from dcc_fg.vio.joint_init import fit_joint_angles
 from factors import chain
 from factors.calibration import RobustLoss
 from factors.vio import joint_random_walk_factor
@@ -294,9 +295,26 @@ class VioSmoother:
         theta = np.asarray(last.theta, float).copy() if self.L else np.zeros(0)
         if self.opt.mode == "scc":
             theta = np.asarray(self.opt.theta_fixed, float)
-        elif self.opt.mode == "dcc" and theta_measurement is not None:
-            theta = np.asarray(theta_measurement[0], float)
+        elif self.opt.mode == "dcc":
+            theta = (
+                np.asarray(theta_measurement[0], float)
+                if theta_measurement is not None
+                else self._fit_pairs(frame, theta)
+            )
         self._anchor_segment(k, t, gtsam.Pose3(T), v, bias, theta, rest is not None, reason, how, frame)
+
+    def _fit_pairs(self, frame: TrackFrame, theta0: FloatArray) -> FloatArray:
+        """dcc restart: the joint angles (rad) from the frame's static <-> gimbal pairs (epipolar fit,
+        :func:`~dcc_fg.vio.joint_init.fit_joint_angles`) when enough of them agree, else ``theta0``."""
+        assert self.cal is not None
+        _, i_s, i_d = np.intersect1d(frame.static_ids, frame.dynamic_ids, return_indices=True)
+        need = max(8, 2 * self.L + 2)
+        if i_s.size < need:
+            return theta0
+        fit = fit_joint_angles(self.cal, frame.static_xy[i_s], frame.dynamic_xy[i_d], theta0)
+        if fit.inliers < max(need, fit.pairs // 2):
+            return theta0
+        return np.asarray(fit.theta, float)
 
     def _anchor_segment(
         self,

@@ -126,8 +126,8 @@ class FixedLagWindow:
             self.smoother.update(graph, values, key_timestamps(stamps))
             for _ in range(self.opt.extra_iterations):
                 self.smoother.update()
-        except RuntimeError as err:  # indeterminant system etc.
-            return str(err).strip().splitlines()[0]
+        except RuntimeError as err:  # indeterminant system etc.: the first sentence (it names the variable)
+            return " ".join(str(err).strip().split("\n\n")[0].split())
         return None
 
     def restart(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, stamps: dict[int, int]) -> None:
