@@ -34,7 +34,7 @@ from dcc_fg.vio.backend.runner import drop_implausible_imu
 from dcc_fg.vio.evaluate import GroundTruth, evaluate_trajectory
 from dcc_fg.vio.health import vio_health
 
-pytestmark = pytest.mark.slow  # three 14 s tracks-level dcc runs (~15 s each idle, 60 s+ under load)
+pytestmark = pytest.mark.slow  # three 14 s tracks-level dcc runs, two per test (~15 s each idle, 60 s loaded)
 
 NS = 1_000_000_000
 DURATION = 14.0
@@ -78,27 +78,19 @@ def per_segment_ape(res: VioResult, gt: GroundTruth, t0_ns: int) -> float:
 
 
 @pytest.fixture(scope="module")
-def runs() -> dict[str, Any]:
+def clean_run() -> dict[str, Any]:
     f = Flight()
+    return {"flight": f, "clean": f.run(f.truth.imu)}
+
+
+def test_imu_gap_starts_a_new_segment_that_recovers(clean_run: dict[str, Any]) -> None:
+    f: Flight = clean_run["flight"]
+    clean = clean_run["clean"]
     imu = f.truth.imu
     t0 = int(f.truth.t_ns[0])
     g0, g1 = t0 + int(GAP[0] * NS), t0 + int(GAP[1] * NS)
     keep = (imu.t_ns < g0) | (imu.t_ns > g1)
-    acc = imu.acc.copy()
-    acc[len(acc) // 2, 0] = 1e30
-    return {
-        "flight": f,
-        "clean": f.run(imu),
-        "gap": f.run(ImuSamples(imu.t_ns[keep], imu.acc[keep], imu.gyro[keep])),
-        "spike": f.run(ImuSamples(imu.t_ns, acc, imu.gyro)),
-        "gap_ns": (g0, g1),
-    }
-
-
-def test_imu_gap_starts_a_new_segment_that_recovers(runs: dict[str, Any]) -> None:
-    f: Flight = runs["flight"]
-    clean, gap = runs["clean"], runs["gap"]
-    g0, g1 = runs["gap_ns"]
+    gap = f.run(ImuSamples(imu.t_ns[keep], imu.acc[keep], imu.gyro[keep]))
     assert clean.stats["segment_count"] == 1 and clean.stats["divergences"] == []
     segs = gap.stats["segments"]
     # the first segment ends before the gap; a new one starts at the first keyframe after it
@@ -122,9 +114,15 @@ def test_imu_gap_starts_a_new_segment_that_recovers(runs: dict[str, Any]) -> Non
     assert "segment" in next(c.message for c in report.checks if c.name == "segments")
 
 
-def test_one_1e30_sample_is_dropped_and_changes_nothing(runs: dict[str, Any], caplog: pytest.LogCaptureFixture) -> None:
-    f: Flight = runs["flight"]
-    clean, spike = runs["clean"], runs["spike"]
+def test_one_1e30_sample_is_dropped_and_changes_nothing(
+    clean_run: dict[str, Any], caplog: pytest.LogCaptureFixture
+) -> None:
+    f: Flight = clean_run["flight"]
+    clean = clean_run["clean"]
+    imu = f.truth.imu
+    acc = imu.acc.copy()
+    acc[len(acc) // 2, 0] = 1e30
+    spike = f.run(ImuSamples(imu.t_ns, acc, imu.gyro))
     assert spike.stats["imu_samples_dropped"] == 1 and spike.stats["segment_count"] == 1
     ev_clean = evaluate_trajectory(clean.timestamps_ns, clean.T_WI, f.gt, "se3")
     ev_spike = evaluate_trajectory(spike.timestamps_ns, spike.T_WI, f.gt, "se3")
