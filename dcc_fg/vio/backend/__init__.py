@@ -36,7 +36,15 @@ of known landmarks with the IMU-predicted pose, then observations are gated with
 Initialization: from standstill (gravity from the mean accelerometer reading, yaw 0, gyroscope bias
 from the mean rate) or from a given :class:`InitialState` (e.g. ground truth in tests).
 
-Modules: :mod:`.options` (settings, initial state, result), :mod:`.keys`, :mod:`.state`,
+Recovery (:mod:`.divergence`, :class:`VioSmoother`): every keyframe is checked against physical
+limits (finite, ``max_speed``, position jump within the IMU's acceleration range, velocity
+covariance); an IMU gap (sample spacing beyond ``imu_gap_periods`` periods), a divergence or a
+failed update starts a new *trajectory segment* (fresh window and landmarks, anchored from
+standstill or the last healthy state). ``result.stats`` lists the ``segments`` (start/end stamps,
+reason), ``segment_count`` and the ``divergences``; poses of different segments are not in one
+frame (evaluate per segment). :func:`dcc_fg.vio.health.vio_health` judges the result.
+
+Modules: :mod:`.options` (settings, initial state, result), :mod:`.keys`, :mod:`.state`, :mod:`.divergence`,
 :mod:`.imu`, :mod:`.cameras`, :mod:`.landmarks`, :mod:`.joints`, :mod:`.zupt`, :mod:`.window`,
 :mod:`.smoother` (:class:`VioSmoother`, the orchestration), :mod:`.runner` (:func:`run_vio`),
 :mod:`.outputs` (:func:`write_vio_outputs`). Frames and conventions: ``docs/architecture.md``.

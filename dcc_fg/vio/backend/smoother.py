@@ -369,7 +369,9 @@ class VioSmoother:
         if self.vision_factors > 0 or self.last_vision_ns is None:
             self.last_vision_ns = t
         self.longest_without_vision_ns = max(self.longest_without_vision_ns, t - self.last_vision_ns)
-        sigma = self._velocity_sigma(k)
+        # the marginal covariance costs as much as the update: only where vision did not constrain
+        # the keyframe (the covariance can only blow up there); the last keyframe's in result()
+        sigma = self._velocity_sigma(k) if self.vision_factors == 0 else None
         if sigma is not None:
             self.velocity_sigma[k] = sigma
         if not check:
@@ -607,6 +609,10 @@ class VioSmoother:
         record: ``segments`` (start/end stamps, keyframes, reason), ``segment_count``,
         ``divergences`` (each with ``recovered``: the segment it started lasted ``lag`` seconds
         without a further divergence), ``longest_without_vision_s`` and ``max_velocity_sigma_mps``."""
+        if self.k >= 0 and self.k not in self.velocity_sigma:
+            sigma = self._velocity_sigma(self.k)
+            if sigma is not None:
+                self.velocity_sigma[self.k] = sigma
         res = result_from_states(self.estimates, self.opt.mode, self.stats)
         res.stats.update(self.recovery_stats(res.timestamps_ns))
         return res
