@@ -26,6 +26,7 @@ from conftest import shared_data
 
 from dcc_fg.cli import main
 from dcc_fg.commands.calibrate import CalibrateConfig
+from dcc_fg.commands.vio import camchain_T_sI, kalibr_imu_config
 from dcc_fg.io.bag_writer import BagWriter, write_ros1_bag, write_ros2_bag
 from dcc_fg.io.bags import read_bag_pairs, scan_imu_and_image_stamps
 from dcc_fg.io.camchain import load_camchain
@@ -775,3 +776,45 @@ def test_cli_evaluate_refuses_bad_trajectories(
     err = capsys.readouterr().err
     assert needle in err and "Traceback" not in err
     assert sorted(p.name for p in run.iterdir()) == before  # no evaluation.json, no figures
+
+
+# ------------------------------------------------------------------ simulate flags, Kalibr IMU files of vio
+
+
+@pytest.mark.parametrize(
+    "argv, culprit",
+    [
+        (["calibration", "--snapshots", "-1"], "--snapshots"),
+        (["calibration", "--snapshots", "0"], "--snapshots"),
+        (["calibration", "--noise", "nan"], "--noise"),
+        (["calibration", "--blur", "-2"], "--blur"),
+        (["flight", "--duration", "inf"], "--duration"),
+        (["flight", "--duration", "0"], "--duration"),
+        (["flight", "--scale", "-1"], "--scale"),
+    ],
+)
+def test_simulate_refuses_bad_numbers_before_any_work(tmp_path, capsys, argv, culprit):
+    out = tmp_path / "sim"
+    with pytest.raises(SystemExit) as exc:
+        main(["simulate", argv[0], "--out", str(out), *argv[1:]])
+    assert exc.value.code == 2
+    assert culprit in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_vio_kalibr_imu_files_are_checked(tmp_path):
+    bad_bytes = tmp_path / "imu.yaml"
+    bad_bytes.write_bytes(b"accelerometer_noise_density: \xff\xfe\n")
+    with pytest.raises(ValueError, match=r"imu.yaml:1: not a text file"):
+        kalibr_imu_config(bad_bytes, np.eye(4))
+    negative = tmp_path / "imu_neg.yaml"
+    negative.write_text(
+        "imu0:\n  accelerometer_noise_density: -0.01\n  accelerometer_random_walk: 0.0002\n"
+        "  gyroscope_noise_density: 0.0002\n  gyroscope_random_walk: 4.0e-06\n"
+    )
+    with pytest.raises(ValueError, match=r"imu_neg.yaml: imu0.accelerometer_noise_density must be a positive"):
+        kalibr_imu_config(negative, np.eye(4))
+    camchain = tmp_path / "camchain-imucam.yaml"
+    camchain.write_text("cam0:\n  T_cam_imu: [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 2, 0], [0, 0, 0, 1]]\n")
+    with pytest.raises(ValueError, match=r"camchain-imucam.yaml: cam0.T_cam_imu: the 3x3 block is not a rotation"):
+        camchain_T_sI(camchain)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 from pathlib import Path
 from typing import Any
 
@@ -30,6 +31,22 @@ FLIGHT_DESCRIPTION = (
     "/ground_truth/pose and /ground_truth/joints; also calibration.yaml (with an imu: section), "
     "ground_truth.tum and ground_truth_joints.csv."
 )
+
+
+def bounded(kind: type, minimum: float, positive: bool = False) -> Any:
+    """An argparse ``type`` that accepts finite numbers >= ``minimum`` (> it when ``positive``)."""
+
+    def parse(text: str) -> Any:
+        try:
+            value = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a {kind.__name__}, got {text!r}") from None
+        ok = math.isfinite(value) and (value > minimum if positive else value >= minimum)
+        if not ok:
+            raise argparse.ArgumentTypeError(f"must be {'>' if positive else '>='} {minimum:g}, got {text}")
+        return value
+
+    return parse
 
 
 SIMULATE_OUT_HELP = (
@@ -102,13 +119,21 @@ def add_calibration_parser(sub: Any, parent: argparse.ArgumentParser) -> None:
     p.add_argument("--force", action="store_true", help="replace the data set an earlier 'simulate calibration' "
                    "wrote into --out")  # fmt: skip
     p.add_argument("--seed", type=int, default=0, help="random seed of the scene and the image noise (default 0)")
-    p.add_argument("--snapshots", type=int, default=81, help="number of image pairs (snapshots), default 81")
+    p.add_argument(
+        "--snapshots", type=bounded(int, 1), default=81, help="number of image pairs (snapshots), default 81"
+    )
     p.add_argument("--joints", type=int, default=2, choices=[0, 1, 2, 3], help="number of gimbal joints L (default 2)")
     p.add_argument(
-        "--noise", type=float, default=RenderConfig.noise_sigma, help="image noise sigma, grey levels (default 2)"
+        "--noise",
+        type=bounded(float, 0.0),
+        default=RenderConfig.noise_sigma,
+        help="image noise sigma, grey levels (default 2)",
     )
     p.add_argument(
-        "--blur", type=float, default=RenderConfig.blur_sigma_px, help="Gaussian blur sigma, pixels (default 0.6)"
+        "--blur",
+        type=bounded(float, 0.0),
+        default=RenderConfig.blur_sigma_px,
+        help="Gaussian blur sigma, pixels (default 0.6)",
     )
 
 
@@ -118,12 +143,21 @@ def add_flight_parser(sub: Any, parent: argparse.ArgumentParser) -> None:
     f.add_argument("--force", action="store_true", help="replace the flight an earlier 'simulate flight' wrote "
                    "into --out")  # fmt: skip
     f.add_argument("--format", default="ros2", choices=["ros1", "ros2"], help="bag format (default ros2)")
-    f.add_argument("--duration", type=float, help="one short loop (16 m x 8 m) flown in this many seconds")
+    f.add_argument(
+        "--duration",
+        type=bounded(float, 0.0, positive=True),
+        help="one short loop (16 m x 8 m) flown in this many seconds",
+    )
     f.add_argument(
         "--pattern", choices=["loops"], help="the paper's two 30 m x 15 m loops, ~180 m in 90 s (the default)"
     )
     f.add_argument("--seed", type=int, default=0, help="seed of the IMU noise, textures and image noise")
-    f.add_argument("--scale", type=float, default=1.0, help="image resolution relative to 640x480 (default 1)")
+    f.add_argument(
+        "--scale",
+        type=bounded(float, 0.0, positive=True),
+        default=1.0,
+        help="image resolution relative to 640x480 (default 1)",
+    )
     f.add_argument(
         "--gimbal",
         default="moving",

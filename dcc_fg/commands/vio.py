@@ -23,11 +23,11 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 from tqdm import tqdm
 
 from dcc_fg.commands import common
 from dcc_fg.data.vio import ImuConfig, load_imu_config
+from dcc_fg.io import validate
 from dcc_fg.io.output_set import OutputSet
 from dcc_fg.model import GimbalCalibration, load_calibration
 from dcc_fg.util.config import ConfigError, from_dict, to_plain
@@ -47,38 +47,27 @@ KALIBR_IMU_KEYS = {
 }
 
 
-def _yaml(path: Path) -> dict[str, Any]:
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: file not found")
-    data = yaml.safe_load(path.read_text()) or {}
-    if not isinstance(data, dict):
-        raise ValueError(f"{path}: expected a YAML mapping")
-    return data
-
-
 def kalibr_imu_config(imu_yaml: Path, T_sI: np.ndarray) -> ImuConfig:
     """IMU noise from a Kalibr ``imu.yaml`` (top level or under ``imu0``) and the mount ``T_sI``."""
-    d = _yaml(imu_yaml)
+    d = validate.load_yaml(imu_yaml, "Kalibr imu.yaml", "noise densities and random walks")
+    section = "imu0." if isinstance(d.get("imu0"), dict) else ""
     d = d.get("imu0", d)
     kwargs: dict[str, Any] = {"T_sI": T_sI}
     for key, name in KALIBR_IMU_KEYS.items():
         if key in d:
-            kwargs[name] = float(d[key])
+            kwargs[name] = validate.number(d[key], f"{imu_yaml}: {section}{key}", positive=True)
         elif key != "update_rate":
-            raise ValueError(f"{imu_yaml}: missing field '{key}'")
+            raise ValueError(f"{imu_yaml}: missing field '{section}{key}'")
     return ImuConfig(**kwargs)
 
 
 def camchain_T_sI(camchain: Path) -> np.ndarray:
     """``T_cam_imu`` of ``cam0`` in a Kalibr camchain-imucam YAML (IMU -> static camera, 4x4)."""
-    d = _yaml(camchain)
+    d = validate.load_yaml(camchain, "Kalibr camchain-imucam", "cam0.T_cam_imu")
     cam0 = d.get("cam0")
     if not isinstance(cam0, dict) or "T_cam_imu" not in cam0:
         raise ValueError(f"{camchain}: missing field 'cam0.T_cam_imu' (the IMU -> cam0 transform)")
-    T = np.asarray(cam0["T_cam_imu"], dtype=float)
-    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
-        raise ValueError(f"{camchain}: 'cam0.T_cam_imu' must be a finite 4x4 matrix")
-    return T
+    return validate.rigid_transform(cam0["T_cam_imu"], f"{camchain}: cam0.T_cam_imu")
 
 
 @dataclass
