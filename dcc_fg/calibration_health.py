@@ -349,7 +349,10 @@ def residual_checks(result: CalibrationResult, floor: NoiseFloor) -> list[Health
             "residuals.snapshots",
             bool(passed),
             text,
-            "" if passed else _hint(result) + "; drop the listed images if only a few fail",
+            ""
+            if passed
+            else _hint(result) + "; drop the listed images if only a few fail; --corners common if "
+            "the intrinsics misfit the image periphery",
             float(len(bad)),
             float(allowed),
         )
