@@ -314,6 +314,13 @@ def print_vio_summary(result: Any, out: Path, n_joints: int) -> None:
         f"{s['processing_time_s']:.1f} s (real-time factor {s['real_time_factor']:.2f}), {s['landmarks']} landmarks, "
         f"{s['failed_updates']} failed updates"
     )
+    n_segments = int(s.get("segment_count", 1) or 1)
+    if n_segments > 1:
+        reasons = "; ".join(str(seg.get("reason", "")) for seg in s.get("segments", [])[1:])
+        print(
+            f"the smoother restarted {n_segments - 1} time(s) ({reasons}): {n_segments} trajectory segments, also "
+            f"written as {out / 'trajectory_segment_K.tum'} (K = 1..{n_segments}); evaluate each on its own"
+        )
     if result.mode == "dcc" and result.theta.size:
         last = ", ".join(f"{x:.4f}" for x in result.theta[-1])
         print(f"final joint angles [{last}] rad")

@@ -68,7 +68,7 @@ KNOWN_OUTPUTS: dict[str, tuple[str, ...]] = {
     "calibrate": _CALIBRATION_OUTPUTS,
     "validate": _CALIBRATION_OUTPUTS,
     "demo": _CALIBRATION_OUTPUTS,
-    "vio": ("trajectory.tum", "joint_angles.csv", "summary.json"),
+    "vio": ("trajectory.tum", "trajectory_segment_*.tum", "joint_angles.csv", "summary.json"),
     "evaluate": ("evaluation.json", "vio_*.png"),
     "simulate calibration": (
         "images",

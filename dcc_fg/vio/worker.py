@@ -20,6 +20,7 @@ import logging
 import os
 import pickle
 import queue
+import signal
 import struct
 import subprocess
 import sys
@@ -186,6 +187,9 @@ def child_main() -> None:
     """Entry of the front-end process (``python -m dcc_fg.vio.worker``): the spec, then control
     messages on stdin; :class:`Tracked` items and a final ``("end", counters)`` on stdout."""
     logging.disable(logging.WARNING)  # the parent has read the same bag and reported its problems
+    # Ctrl-C reaches the whole process group: the parent reports it in one line and closes the pipes,
+    # which ends this process (EOF / BrokenPipeError); a traceback of its own would only add noise.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     cv2.setNumThreads(1)  # one core for the front end, the other for the smoother
     inp, out = sys.stdin.buffer, sys.stdout.buffer
     sys.stdout = sys.stderr  # nothing else may write to the data stream
@@ -219,7 +223,10 @@ def child_main() -> None:
     except BrokenPipeError:  # the parent stopped reading
         return
     except BaseException as exc:  # reported to the parent, which raises it
-        _send(out, ("error", type(exc).__name__, str(exc)))
+        try:
+            _send(out, ("error", type(exc).__name__, str(exc)))
+        except (BrokenPipeError, OSError):  # the parent has gone: nobody to report to
+            return
 
 
 class FrontendWorker:
