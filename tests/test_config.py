@@ -68,7 +68,7 @@ def test_bad_values_name_the_file_and_key(data: dict, message: str) -> None:
 
 
 def test_options_own_checks_apply() -> None:
-    with pytest.raises(ConfigError, match="solver: .*pixel_sigma must be positive"):
+    with pytest.raises(ConfigError, match="solver: .*pixel_sigma must be a positive number of pixels"):
         from_dict(CalibrateConfig, {"solver": {"pixel_sigma": -1.0}}, "cfg")
 
 
