@@ -248,7 +248,7 @@ def test_vio_defaults_match_the_former_command_line_defaults() -> None:
 def test_vio_run_reproduced_from_its_summary(tmp_path: Path) -> None:
     """A short rendered flight: the options of run 1 (recorded in summary.json) -> config -> run 2."""
     flight = tmp_path / "flight"
-    argv = ["simulate", "flight", "--out", str(flight), "--duration", "6", "--scale", "0.5", "-q"]
+    argv = ["simulate", "flight", "--out", str(flight), "--duration", "10", "--scale", "0.5", "-q"]
     assert main(argv) == 0
     base = ["vio", str(flight / "flight"), "--calibration", str(flight / "calibration.yaml"), "-q"]
     first = tmp_path / "first"

@@ -3,15 +3,19 @@
 from __future__ import annotations
 
 import argparse
+import logging
 import math
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 from dcc_fg.commands import common
 from dcc_fg.sim.flight_bag import write_flight
 from dcc_fg.sim.render import RenderConfig
 from dcc_fg.sim.trajectory import FlightConfig, locked_gimbal
 from dcc_fg.sim.write_dataset import DYNAMIC_TOPIC, STATIC_TOPIC, CalibrationSimSpec, write_calibration_dataset
+from dcc_fg.vio.backend import VioOptions
 
 CALIBRATION_SUMMARY = "render a calibration data set of the paper's scenario (images + camchain/target/gimbal + truth)"
 CALIBRATION_DESCRIPTION = (
@@ -48,6 +52,8 @@ def bounded(kind: type, minimum: float, positive: bool = False) -> Any:
 
     return parse
 
+
+log = logging.getLogger("dcc_fg.simulate")
 
 SIMULATE_OUT_HELP = (
     "It must not already hold a data set (any of the names this command writes) unless --force, nor be the result "
@@ -86,6 +92,15 @@ def simulate_flight_command(args: argparse.Namespace) -> int:
         progress=not args.quiet,
         force=args.force,
     )
+    speed = float(np.linalg.norm(res.truth.v_W, axis=1).max()) if len(res.truth.v_W) else 0.0
+    limit = VioOptions().max_speed
+    if speed > limit:
+        log.warning(
+            "this flight reaches %.1f m/s, beyond the smoother's default max_speed of %g m/s (a divergence "
+            "bound): run vio with --config setting smoother.max_speed above it, or simulate a longer --duration",
+            speed,
+            limit,
+        )
     print(
         f"wrote {res.bag} ({res.frames} frame pairs, {res.truth.distance:.1f} m, "
         f"{res.render_ms_per_pair:.1f} ms CPU rendering per pair, {res.seconds:.1f} s), {res.calibration}, "

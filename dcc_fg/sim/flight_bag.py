@@ -31,7 +31,7 @@ import yaml
 from numpy.typing import NDArray
 from tqdm import tqdm
 
-from dcc_fg.data.vio import ImuConfig, load_imu_config
+from dcc_fg.data.vio import ImuConfig, ImuSamples, load_imu_config
 from dcc_fg.io.bag_writer import BagWriter, joint_names
 from dcc_fg.io.output_set import OutputSet
 from dcc_fg.io.outputs import write_joint_angles_csv, write_text_atomic
@@ -164,6 +164,20 @@ def _calibration_yaml(
     return d
 
 
+def sensor_covering(imu: ImuConfig, samples: ImuSamples) -> ImuConfig:
+    """``imu`` with its measurement ranges (``acc_range`` m/s^2, ``gyro_range`` rad/s) widened to 1.25x
+    the largest simulated sample where the flight exceeds them: the simulated sensor does not
+    saturate, and the calibration.yaml written with the flight says so (a short, fast flight's
+    corners reach beyond a real 16 g accelerometer)."""
+    acc_max = float(np.max(np.abs(samples.acc))) if len(samples) else 0.0
+    gyro_max = float(np.max(np.abs(samples.gyro))) if len(samples) else 0.0
+    return dataclasses.replace(
+        imu,
+        acc_range=max(imu.acc_range, 1.25 * acc_max),
+        gyro_range=max(imu.gyro_range, 1.25 * gyro_max),
+    )
+
+
 def write_flight(
     out: str | Path,
     fmt: Literal["ros1", "ros2"] = "ros2",
@@ -211,6 +225,7 @@ def write_flight(
     T_sI = default_static_mount()
     imu = dataclasses.replace(imu or ImuConfig(), T_sI=T_sI)
     truth = simulate_flight(config, imu, joints, seed=seed)
+    imu = sensor_covering(imu, truth.imu)
     cal = scaled_flight_calibration(scale)
     renderer = WorldRenderer(planes_from_world(World.around(config)), seed=seed)
     frames = render_flight(renderer, truth, cal, T_sI, noise_sigma=noise_sigma, seed=seed + 1)
