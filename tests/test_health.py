@@ -154,9 +154,9 @@ def test_too_few_joints_is_caught() -> None:
 def test_too_few_joints_other_mechanisms() -> None:
     """Other seeds and mechanisms: a random 2-joint one with --joints 1, the 3-joint scene with 2."""
     cases = [
-        (simulate_calibration(21, SceneConfig(n_calibration=40, n_validation=2),
+        (simulate_calibration(21, SMALL,
                               mechanism=random_mechanism(np.random.default_rng(21), 2)), 1),
-        (simulate_calibration(22, SceneConfig(n_joints=3, n_calibration=40, n_validation=2)), 2),
+        (simulate_calibration(22, replace(SMALL, n_joints=3)), 2),
     ]  # fmt: skip
     for sim, L in cases:
         initial, data = with_auto_init(sim.calibration_set, L)
