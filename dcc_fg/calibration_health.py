@@ -610,16 +610,11 @@ def pairing_shift_check(result: CalibrationResult, floor: NoiseFloor) -> HealthC
     )
 
 
-def _number(d: dict[str, Any], *words: str) -> float | None:
-    """The first numeric value (or median of a per-camera dict) of a key containing every word."""
-    for key, value in d.items():
-        if all(w in key for w in words):
-            if isinstance(value, dict):
-                vals = [float(v) for v in value.values() if isinstance(v, int | float)]
-                if vals:
-                    return float(min(vals))
-            elif isinstance(value, int | float) and np.isfinite(value):
-                return float(value)
+def _finite_ms(d: dict[str, Any], key: str) -> float | None:
+    """``d[key]`` as a float when it is a finite number (the reader's pairing statistics, ms)."""
+    value = d.get(key)
+    if isinstance(value, int | float) and not isinstance(value, bool) and np.isfinite(value):
+        return float(value)
     return None
 
 
@@ -629,8 +624,9 @@ def pairing_stamp_check(reader_report: dict[str, Any] | None) -> HealthCheck | N
     pairing = (reader_report or {}).get("pairing")
     if not isinstance(pairing, dict):
         return None
-    gap = _number(pairing, "median", "gap")
-    period = _number(pairing, "period")
+    gap = _finite_ms(pairing, "gap_median_ms")
+    periods = [p for p in (_finite_ms(pairing, "period_static_ms"), _finite_ms(pairing, "period_dynamic_ms")) if p]
+    period = min(periods) if periods else None
     if gap is None or period is None or not period > 0:
         return None
     limit = 0.25 * period

@@ -16,6 +16,7 @@ from dcc_fg.calibration_health import (
     pose_residual_jacobian,
     refine_poses,
 )
+from dcc_fg.io.pairing import Pairing
 from dcc_fg.sim.calibration_scene import SceneConfig, default_cameras, simulate_calibration
 
 
@@ -62,10 +63,15 @@ def test_max_iterations_below_one_is_refused() -> None:
 
 
 def test_stamp_gap_check() -> None:
+    """The reader's pairing statistics (io.pairing.Pairing.statistics): synchronized cameras pass,
+    cameras whose pairs are 20 ms apart at 50 ms frame periods (free-running) fail."""
     assert pairing_stamp_check(None) is None
     assert pairing_stamp_check({"pairing": {}}) is None
-    ok = pairing_stamp_check({"pairing": {"median_gap_ms": 0.1, "max_gap_ms": 2.0, "frame_period_ms": {"cam0": 50.0}}})
-    assert ok is not None and ok.passed
-    bad = pairing_stamp_check({"pairing": {"median_gap_ms": 20.0, "median_frame_period_ms": 50.0}})
-    assert bad is not None and not bad.passed
+    static = [i * 50_000_000 for i in range(40)]
+    synced = Pairing([(i, i) for i in range(40)], static_ns=static, dynamic_ns=[t + 100_000 for t in static])
+    ok = pairing_stamp_check({"pairing": synced.statistics()})
+    assert ok is not None and ok.passed and ok.threshold == pytest.approx(12.5)
+    late = Pairing([(i, i) for i in range(40)], static_ns=static, dynamic_ns=[t + 20_000_000 for t in static])
+    bad = pairing_stamp_check({"pairing": late.statistics()})
+    assert bad is not None and not bad.passed and bad.value == pytest.approx(20.0)
     assert "synchroniz" in bad.message and "--sync-tolerance" in bad.hint
