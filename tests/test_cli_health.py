@@ -146,8 +146,27 @@ def test_healthy_run_records_its_health(cal_run, tmp_path, capsys) -> None:  # n
     out = tmp_path / "out"
     assert main([*cal_run["argv"], "--out", str(out)]) == 0
     health = json.loads((out / "summary.json").read_text())["health"]
-    assert health == {"healthy": True, "failures": [], "checks": [healthy("calibration").checks[0].to_dict()]}
+    assert health == {
+        "healthy": True,
+        "failures": [],
+        "warnings": [],
+        "checks": [healthy("calibration").checks[0].to_dict()],
+    }
     assert "accepted" not in capsys.readouterr().err
+
+
+def test_a_warning_is_logged_and_recorded_but_the_run_stays_healthy(cal_run, tmp_path, capsys) -> None:  # noqa: ANN001
+    report = healthy("calibration")
+    report.add(HealthCheck("residuals.snapshots", False, "3 of 30 snapshots fit far worse", "drop them",
+                           3.0, 2.0, severity="warning"))  # fmt: skip
+    cal_run["health"] = report
+    out = tmp_path / "out"
+    assert main([*cal_run["argv"], "--out", str(out)]) == 0
+    assert "calibration health warning: residuals.snapshots: 3 of 30" in capsys.readouterr().err
+    health = json.loads((out / "summary.json").read_text())["health"]
+    assert health["healthy"] is True and health["failures"] == []
+    assert health["warnings"] == ["residuals.snapshots: 3 of 30 snapshots fit far worse"]
+    assert health["checks"][1]["severity"] == "warning"
 
 
 def test_unhealthy_validation(cal_run, tmp_path, capsys) -> None:  # noqa: ANN001

@@ -99,6 +99,9 @@ def judge_health(report: HealthReport, accept: bool) -> dict[str, Any]:
     exit code 3) unless ``accept`` (``--accept-unhealthy``); then every failed check is logged as a
     warning and the block says ``healthy: false`` with the reasons.
     """
+    for check in report.warnings:
+        hint = f" (try: {check.hint})" if check.hint else ""
+        log.warning("%s health warning: %s: %s%s", report.subject, check.name, check.message, hint)
     if not report.healthy:
         if not accept:
             raise UnhealthyResultError(report)

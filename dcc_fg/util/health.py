@@ -39,6 +39,8 @@ class HealthCheck:
         hint: what to try when it failed (empty when passed).
         value: the measured statistic (None when not numeric).
         threshold: the limit it was compared against (None when not numeric).
+        severity: ``error`` (a failure makes the result unhealthy) or ``warning`` (a failure is
+            reported and recorded but the result stays usable, e.g. a few outlier snapshots).
     """
 
     name: str
@@ -47,9 +49,16 @@ class HealthCheck:
     hint: str = ""
     value: float | None = None
     threshold: float | None = None
+    severity: str = "error"
+
+    def __post_init__(self) -> None:
+        if self.severity not in ("error", "warning"):
+            raise ValueError(f"health check severity must be error or warning, got {self.severity!r}")
 
     def to_dict(self) -> dict[str, Any]:
         out: dict[str, Any] = {"name": self.name, "passed": bool(self.passed), "message": self.message}
+        if self.severity != "error":
+            out["severity"] = self.severity
         if self.hint:
             out["hint"] = self.hint
         if self.value is not None:
@@ -75,7 +84,13 @@ class HealthReport:
 
     @property
     def failures(self) -> list[HealthCheck]:
-        return [c for c in self.checks if not c.passed]
+        """Failed checks of severity ``error``: any of them makes the result unhealthy."""
+        return [c for c in self.checks if not c.passed and c.severity == "error"]
+
+    @property
+    def warnings(self) -> list[HealthCheck]:
+        """Failed checks of severity ``warning``: reported, the result stays healthy."""
+        return [c for c in self.checks if not c.passed and c.severity == "warning"]
 
     @property
     def healthy(self) -> bool:
@@ -86,6 +101,7 @@ class HealthReport:
         return {
             "healthy": self.healthy,
             "failures": [f"{c.name}: {c.message}" for c in self.failures],
+            "warnings": [f"{c.name}: {c.message}" for c in self.warnings],
             "checks": [c.to_dict() for c in self.checks],
         }
 
