@@ -216,6 +216,11 @@ def check_dataset(data: CalibrationDataset, n_joints: int, mode: str) -> None:
                 raise ValueError(f"{tag}: encoders mode needs {n_joints} joint angles per snapshot")
             if not np.all(np.isfinite(s.joints)):
                 raise ValueError(f"{tag}: NaN joint angles")
+            if np.max(np.abs(s.joints)) > 2.0 * np.pi:
+                raise ValueError(
+                    f"{tag}: joint reading {float(np.max(np.abs(s.joints))):.4g} is beyond a full turn: the readings "
+                    "look like degrees, but radians are needed"
+                )
     need = minimum_snapshots(n_joints, mode)
     if len(data.snapshots) < need:
         raise ValueError(
