@@ -36,12 +36,14 @@ from tqdm import tqdm
 
 from dcc_fg.data import Observation
 from dcc_fg.detection import detect_target
+from dcc_fg.intrinsics_health import intrinsics_health
 from dcc_fg.io.bags import BagTopicImages, is_bag
 from dcc_fg.io.camchain import CamchainEntry, camchain_to_yaml, load_camchain
 from dcc_fg.io.folders import IMAGE_SUFFIXES, list_timestamped, read_image
 from dcc_fg.io.outputs import write_text_atomic
 from dcc_fg.targets import TargetGeometry
 from dcc_fg.util.errors import stage
+from dcc_fg.util.health import UnhealthyResultError
 from factors.camera import CameraModel
 
 log = logging.getLogger(__name__)
@@ -394,6 +396,7 @@ def run_intrinsics(
     min_corners: int = 12,
     max_rms: float = 2.0,
     progress: bool = True,
+    accept_unhealthy: bool = False,
 ) -> IntrinsicsResult:
     """Detect, select views, calibrate, and (if ``out``) write the camchain entry.
 
@@ -407,9 +410,13 @@ def run_intrinsics(
         every: use every n-th image.
         max_views: at most this many views (evenly spaced in time) enter the calibration.
         min_corners: a view needs at least this many corners.
-        max_rms: refuse (ValueError, nothing written) a result whose RMS reprojection error
-            exceeds this many pixels: wrong target dimensions or a bad detection, not a camera.
+        max_rms: a result whose RMS reprojection error exceeds this many pixels is unhealthy
+            (wrong target dimensions or bad detections, not a camera); see
+            :func:`dcc_fg.intrinsics_health.intrinsics_health` for every check.
         progress: tqdm progress bar over the images.
+        accept_unhealthy: return (and write) a result that failed a health check; otherwise
+            :class:`~dcc_fg.util.health.UnhealthyResultError` is raised and nothing is written. The
+            report is in ``result.extra['health']``.
     """
     if model not in MODELS:
         raise ValueError(f"camera model '{model}' is not one of {', '.join(MODELS)}")
@@ -417,12 +424,10 @@ def run_intrinsics(
     used = select_views(views, max_views)
     result = calibrate_intrinsics(used, target, resolution, model, where)
     result.n_images, result.n_detected = n_read, len(views)
-    if not result.rms_px <= max_rms:
-        worst = result.views[int(np.argmax(result.per_view_rms_px))].source
-        raise ValueError(
-            f"{where}: RMS reprojection error {result.rms_px:.2f} px exceeds {max_rms} px (worst view {worst}, "
-            f"{result.per_view_rms_px.max():.2f} px); check the target dimensions in target.yaml; nothing written"
-        )
+    health = intrinsics_health(result, max_rms)
+    result.extra["health"] = health
+    if not health.healthy and not accept_unhealthy:
+        raise UnhealthyResultError(health)
     if out is not None:
         bag_topic = (topic or f"/{camera}/image_raw") if is_bag(Path(data)) else None
         write_intrinsics_camchain(out, camera, result, bag_topic)

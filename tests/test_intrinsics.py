@@ -31,6 +31,7 @@ from dcc_fg.intrinsics import (
     run_intrinsics,
     select_views,
 )
+from dcc_fg.intrinsics_health import fold_check, principal_point_check
 from dcc_fg.io.bag_writer import write_ros1_bag, write_ros2_bag
 from dcc_fg.io.camchain import load_camchain
 from dcc_fg.io.folders import FramePair
@@ -246,3 +247,46 @@ def test_select_views_spreads_over_the_recording() -> None:
 def test_detect_views_reads_every_nth(left_folder: Path) -> None:
     views, res, n_read, _ = detect_views(left_folder, "cam0", BOARD, every=4, progress=False)
     assert n_read == 4 and len(views) == 4 and res == (640, 480)
+
+
+# ------------------------------------------------------------------ health checks (issue 13)
+
+
+def test_real_left_camera_is_healthy(left_folder: Path) -> None:
+    res = run_intrinsics(left_folder, BOARD, "cam0", progress=False)
+    report = res.extra["health"]
+    assert report.healthy and not report.warnings, report.failure_text()
+    assert {c.name for c in report.checks} == {
+        "finite", "residuals.rms", "residuals.views", "principal_point", "distortion.fold",
+    }  # fmt: skip
+
+
+def test_unhealthy_intrinsics_exit_3_and_write_nothing_unless_accepted(
+    left_folder: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A limit below the real 0.2 px RMS: exit 3 naming the check, no file; accepted: written, marked."""
+    target = tmp_path / "target.yaml"
+    target.write_text(yaml.safe_dump(BOARD.to_kalibr()))
+    out, summary = tmp_path / "camchain.yaml", tmp_path / "summary.json"
+    argv = ["intrinsics", str(left_folder), "--target", str(target), "--out", str(out), "--summary", str(summary)]
+    assert main([*argv, "--max-rms", "0.05", "-q"]) == 3
+    assert "residuals.rms: RMS reprojection error" in capsys.readouterr().err
+    assert not out.exists() and not summary.exists()
+    assert main([*argv, "--max-rms", "0.05", "--accept-unhealthy", "-q"]) == 0
+    health = yaml.safe_load(summary.read_text())["health"]
+    assert health["healthy"] is False and health["failures"][0].startswith("residuals.rms")
+    assert out.is_file()
+
+
+def test_distortion_that_folds_inside_the_image_is_caught() -> None:
+    good = CameraModel((460.0, 460.0, 320.0, 240.0), "radtan", (-0.28, 0.07, 0.0, 0.0), (640, 480))
+    assert fold_check(good).passed
+    # r_d = r (1 + k1 r^2) turns back at r^2 = -1 / (3 k1) = 1/3, where r_d = 0.385: the image corners
+    # are at distorted radius 0.87, beyond what the model can reach
+    folded = CameraModel((460.0, 460.0, 320.0, 240.0), "radtan", (-1.0, 0.0, 0.0, 0.0), (640, 480))
+    check = fold_check(folded, observed=0.5)
+    assert not check.passed and check.severity == "error"
+    assert "folds at distorted normalized radius 0.38" in check.message
+    assert fold_check(folded, observed=0.3).severity == "warning"  # only beyond the corners the views saw
+    off = CameraModel((460.0, 460.0, 700.0, 240.0), "radtan", (0.0, 0.0, 0.0, 0.0), (640, 480))
+    assert not principal_point_check(off).passed and principal_point_check(good).passed

@@ -35,6 +35,7 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
             "dcc_fg.auto_init",
             "dcc_fg.joint_motion",
             "dcc_fg.intrinsics",
+            "dcc_fg.intrinsics_health",
             "dcc_fg.vio",
         ),
     ),

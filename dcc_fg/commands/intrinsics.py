@@ -34,6 +34,7 @@ class IntrinsicsOptions:
     max_views: int = 80
     min_corners: int = 12
     max_rms: float = 2.0
+    accept_unhealthy: bool = False
 
 
 def intrinsics_command(args: argparse.Namespace) -> int:
@@ -43,17 +44,25 @@ def intrinsics_command(args: argparse.Namespace) -> int:
         raise ValueError(f"{args.target}: target file not found")
     outputs = OutputFiles({"--out": args.out, "--summary": args.summary}, {"DATA": args.data, "--target": args.target})
     options = IntrinsicsOptions(
-        args.camera, args.model, args.topic, args.every, args.max_views, args.min_corners, args.max_rms
+        args.camera,
+        args.model,
+        args.topic,
+        args.every,
+        args.max_views,
+        args.min_corners,
+        args.max_rms,
+        args.accept_unhealthy,
     )
     target = load_target(args.target)
     with outputs:
         result = run_intrinsics(args.data, target, out=None, progress=common.progress_wanted(args), **asdict(options))
+        health = common.judge_health(result.extra["health"], options.accept_unhealthy)
         bag_topic = (args.topic or f"/{args.camera}/image_raw") if is_bag(Path(args.data)) else None
         outputs.seed("--out")  # an existing camchain keeps its other cameras
         write_intrinsics_camchain(outputs["--out"], args.camera, result, bag_topic)
         if args.summary:
             provenance = run_record("intrinsics", {"data": args.data, "target": args.target}, options)
-            write_json(outputs["--summary"], {**provenance, **result.summary()})
+            write_json(outputs["--summary"], {**provenance, **result.summary(), "health": health})
     print(intrinsics_table(result))
     print(f"wrote {args.out}" + (f", {args.summary}" if args.summary else ""))
     return 0
@@ -75,8 +84,12 @@ def add_parser(sub: Any, parent: argparse.ArgumentParser) -> None:
     i.add_argument("--max-views", type=int, default=80, help="at most this many views, evenly spaced (default 80)")
     i.add_argument("--min-corners", type=int, default=12, help="corners a view needs to be used (default 12)")
     i.add_argument(
-        "--max-rms", type=float, default=2.0, help="refuse results with a larger RMS reprojection error (px, default 2)"
-    )
+        "--max-rms", type=float, default=2.0, help="a larger RMS reprojection error (px, default 2) fails the "
+        "health check (exit 3, nothing written)",
+    )  # fmt: skip
+    i.add_argument("--accept-unhealthy", action="store_true", help="write a result that failed a health check "
+                   "(RMS, principal point, distortion folding inside the image, non-finite values); --summary "
+                   "then records health.healthy false with the reasons")  # fmt: skip
     i.add_argument("--out", default="camchain.yaml", help="camchain YAML to write or update (default camchain.yaml; "
                    "its other cameras are kept). Checked before any work (not a folder, not an input); written "
                    "together with --summary only when the calibration succeeds")  # fmt: skip
