@@ -11,11 +11,19 @@ from rosbags.typesys import Stores, get_typestore
 from scipy.spatial.transform import Rotation
 
 from dcc_fg.cli import main
+from dcc_fg.commands.evaluate import evaluation
 from dcc_fg.data.vio import ImuConfig, ImuSamples, TrackFrame
 from dcc_fg.io.tum import read_tum, write_tum
 from dcc_fg.sim.trajectory import FlightConfig, default_static_mount, flight_calibration, simulate_flight
 from dcc_fg.vio.backend import VioOptions, VioResult, run_vio, validate_imu, write_vio_outputs
-from dcc_fg.vio.evaluate import GroundTruth, evaluate_output, evaluate_trajectory, joint_rmse, load_ground_truth
+from dcc_fg.vio.evaluate import (
+    GroundTruth,
+    evaluate_output,
+    evaluate_trajectory,
+    format_evaluation,
+    joint_rmse,
+    load_ground_truth,
+)
 
 
 @pytest.fixture(scope="module")
@@ -178,3 +186,28 @@ def test_standstill_initialization_and_image_gap(truth, caplog) -> None:
     z_true = truth.T_WI[0][:3, :3].T @ np.array([0.0, 0.0, 1.0])
     # (up to the tilt the accelerometer bias of 0.11 m/s^2 causes: 0.65 deg)
     assert np.degrees(np.arccos(np.clip(z_est @ z_true, -1, 1))) < 1.0
+
+
+def test_segments_after_a_restart_are_evaluated_each_on_its_own(tmp_path: Path, truth) -> None:
+    """A run whose second segment lives in another world frame (the smoother restarted): one alignment
+    of the whole file shows the frame jump, each segment aligned on its own shows the noise (1 cm)."""
+    t, T = _perturbed(truth, 0.01)
+    half = len(t) // 2
+    jump = np.eye(4)
+    jump[:3, :3] = Rotation.from_euler("z", 0.3).as_matrix()
+    jump[:3, 3] = [2.0, -1.0, 0.5]
+    T_run = T.copy()
+    T_run[half:] = jump @ T[half:]
+    out = tmp_path / "run"
+    out.mkdir()
+    write_tum(out / "trajectory.tum", t, T_run)
+    write_tum(out / "trajectory_segment_1.tum", t[:half], T_run[:half])
+    write_tum(out / "trajectory_segment_2.tum", t[half:], T_run[half:])
+    gt_path = tmp_path / "gt.tum"
+    write_tum(gt_path, truth.t_ns, truth.T_WI)
+    result = evaluation(out, gt_path)
+    assert [s["file"] for s in result["segments"]] == ["trajectory_segment_1.tum", "trajectory_segment_2.tum"]
+    assert result["ape_rmse_m"] > 0.3
+    for seg in result["segments"]:
+        assert seg["ape_rmse_m"] < 3 * 0.01 * np.sqrt(3)
+    assert "segment trajectory_segment_2.tum: APE RMSE" in format_evaluation(result)

@@ -25,6 +25,9 @@ from dcc_fg.vio.evaluate import (
     output_mode_and_alignment,
 )
 
+#: A segment needs this many poses for an aligned APE (SE(3) alignment of fewer is degenerate).
+MIN_SEGMENT_POSES = 5
+
 EVALUATE_SUMMARY = "score a VIO run (trajectory.tum, joint_angles.csv) against ground truth"
 EVALUATE_DESCRIPTION = (
     "APE/RPE with evo (SE(3) alignment; Sim(3) for mono runs), normalized translation RMSE (%% of "
@@ -40,6 +43,13 @@ def evaluation(out: Path, ground_truth: Path, align: str = "auto") -> dict[str, 
     gt = load_ground_truth(ground_truth)
     t, T = read_tum(out / "trajectory.tum")
     result = {"mode": mode, "ground_truth": str(ground_truth), **evaluate_trajectory(t, T, gt, align)}
+    segments = segment_evaluations(out, gt, align)
+    if segments:
+        result["segments"] = segments
+        result["note"] = (
+            "the smoother restarted: the whole-trajectory numbers align every segment with one transform; "
+            "'segments' aligns each on its own"
+        )
     joints_csv = out / "joint_angles.csv"
     if joints_csv.is_file() and mode != "mono":
         jt, theta = read_joint_angles_csv(joints_csv)
@@ -47,6 +57,20 @@ def evaluation(out: Path, ground_truth: Path, align: str = "auto") -> dict[str, 
         if rmse is not None:
             result["joint_rmse_rad"] = rmse
     return result
+
+
+def segment_evaluations(out: Path, gt: Any, align: str) -> list[dict[str, Any]]:
+    """APE of each ``trajectory_segment_K.tum`` (written after a restart of the smoother), each aligned on
+    its own; segments with fewer than :data:`MIN_SEGMENT_POSES` poses are listed without numbers."""
+    found = sorted(out.glob("trajectory_segment_*.tum"), key=lambda p: int(p.stem.rsplit("_", 1)[1]))
+    results = []
+    for path in found:
+        t, T = read_tum(path)
+        entry: dict[str, Any] = {"file": path.name, "keyframes": len(t)}
+        if len(t) >= MIN_SEGMENT_POSES:
+            entry.update(evaluate_trajectory(t, T, gt, align))
+        results.append(entry)
+    return results
 
 
 def evaluate_command(args: argparse.Namespace) -> int:
