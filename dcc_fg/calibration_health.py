@@ -35,7 +35,7 @@ Checks (name: statistic, threshold):
   lower the cost by more than one unit of chi-square (``dSS / s2 > 1``).
 * ``finite``: kinematics, joint angles, target poses, standard deviations and ``T_ds`` covariances
   are finite (NaN standard deviations only for unobservable parameters), variances non-negative.
-* ``joint_angles``: estimated joint angles spanning more than a full turn (2 pi) per joint;
+* ``joint_angles``: estimated joint angles finite (their circular span is reported);
   ``encoders`` mode: readings beyond +-2 pi (joints.csv in degrees instead of radians).
 * ``pairing.shift``: the PnP ``T_ds`` of every snapshot re-paired with the neighbouring dynamic
   image (shift +-1) and the chain re-fitted at the pose level (:func:`dcc_fg.init.pose_level_refine`,
@@ -489,9 +489,19 @@ def finite_check(result: CalibrationResult) -> HealthCheck:
     return HealthCheck("finite", True, "estimates, standard deviations and covariances are finite")
 
 
+def circular_span(theta: FloatArray) -> FloatArray:
+    """Per joint (columns of ``theta`` (K, L), rad), the length of the shortest arc that holds every
+    angle modulo 2 pi (2 pi minus the largest gap between neighbouring wrapped angles): an estimate of
+    -3.2 rad and one of 3.1 rad are 0.02 rad apart on the joint, not 6.3."""
+    wrapped = np.sort(np.mod(theta, FULL_TURN), axis=0)
+    gaps = np.diff(np.vstack([wrapped, wrapped[:1] + FULL_TURN]), axis=0)
+    return FULL_TURN - gaps.max(axis=0)
+
+
 def joint_angle_checks(result: CalibrationResult, data: CalibrationDataset) -> list[HealthCheck]:
-    """``joint_angles``: estimated angles span at most a full turn per joint; ``encoders`` mode:
-    readings within +-2 pi (larger values are degrees, not radians)."""
+    """``joint_angles``: estimated angles finite (their span is reported as the shortest arc holding them:
+    a revolute joint's angles are defined modulo a turn); ``encoders`` mode: readings within +-2 pi
+    (larger values are degrees, not radians)."""
     out = []
     th = np.asarray(result.joint_angles, float)
     L = result.calibration.n_joints
@@ -517,12 +527,15 @@ def joint_angle_checks(result: CalibrationResult, data: CalibrationDataset) -> l
                 FULL_TURN,
             )
         )
-    span = np.ptp(th, axis=0) if np.all(np.isfinite(th)) else np.full(L, np.inf)
+    span = circular_span(th) if np.all(np.isfinite(th)) else np.full(L, np.inf)
     worst = int(np.argmax(span))
-    passed = bool(span[worst] <= FULL_TURN)
-    text = f"joint {worst + 1} spans {span[worst]:.4g} rad (limit a full turn, {FULL_TURN:.4g} rad)"
+    passed = bool(np.isfinite(span[worst]))
+    text = (
+        f"joint {worst + 1} covers {span[worst]:.4g} rad (the shortest arc holding every estimate; angles that "
+        "differ by whole turns are the same)"
+    )
     if not passed:
-        text += ": the joint angles are not physical; the model probably does not fit the mechanism"
+        text = "non-finite joint angles: the model probably does not fit the mechanism"
     out.append(
         HealthCheck(
             "joint_angles.range",

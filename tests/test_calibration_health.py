@@ -11,6 +11,7 @@ import pytest
 
 from dcc_fg.calibrate import CalibrationOptions
 from dcc_fg.calibration_health import (
+    circular_span,
     noise_floor,
     pairing_stamp_check,
     pose_residual_jacobian,
@@ -75,3 +76,10 @@ def test_stamp_gap_check() -> None:
     bad = pairing_stamp_check({"pairing": late.statistics()})
     assert bad is not None and not bad.passed and bad.value == pytest.approx(20.0)
     assert "synchroniz" in bad.message and "--sync-tolerance" in bad.hint
+
+
+def test_circular_span_treats_whole_turns_as_the_same_angle() -> None:
+    theta = np.array([[-3.2, 0.0], [3.1, 0.5], [3.0, 1.0]])
+    span = circular_span(theta)
+    assert span[0] == pytest.approx(0.1)  # -3.2 rad is 3.083 rad: the arc from 3.0 to 3.1
+    assert span[1] == pytest.approx(1.0)
