@@ -14,16 +14,10 @@ from typing import Any
 
 from dcc_fg.commands import common
 from dcc_fg.io.output_set import OutputSet
-from dcc_fg.io.outputs import read_joint_angles_csv, write_json
+from dcc_fg.io.outputs import write_json
 from dcc_fg.io.tum import read_tum
 from dcc_fg.plots.vio_output import write_vio_figures
-from dcc_fg.vio.evaluate import (
-    evaluate_trajectory,
-    format_evaluation,
-    joint_rmse,
-    load_ground_truth,
-    output_mode_and_alignment,
-)
+from dcc_fg.vio.evaluate import evaluate_folder, evaluate_trajectory, format_evaluation, load_ground_truth
 
 #: A segment needs this many poses for an aligned APE (SE(3) alignment of fewer is degenerate).
 MIN_SEGMENT_POSES = 5
@@ -37,32 +31,27 @@ EVALUATE_DESCRIPTION = (
 
 
 def evaluation(out: Path, ground_truth: Path, align: str = "auto") -> dict[str, Any]:
-    """The content of ``evaluation.json`` for the VIO output folder ``out`` (what
-    :func:`dcc_fg.vio.evaluate.evaluate_output` computes, without writing)."""
-    mode, align = output_mode_and_alignment(out, align)
-    gt = load_ground_truth(ground_truth)
-    t, T = read_tum(out / "trajectory.tum")
-    result = {"mode": mode, "ground_truth": str(ground_truth), **evaluate_trajectory(t, T, gt, align)}
-    segments = segment_evaluations(out, gt, align)
+    """The content of ``evaluation.json`` for the VIO output folder ``out``:
+    :func:`dcc_fg.vio.evaluate.evaluate_folder`, plus each trajectory segment on its own after a
+    restart of the smoother."""
+    result = evaluate_folder(out, ground_truth, align)
+    segments = segment_evaluations(out, ground_truth, result["alignment"])
     if segments:
         result["segments"] = segments
         result["note"] = (
             "the smoother restarted: the whole-trajectory numbers align every segment with one transform; "
             "'segments' aligns each on its own"
         )
-    joints_csv = out / "joint_angles.csv"
-    if joints_csv.is_file() and mode != "mono":
-        jt, theta = read_joint_angles_csv(joints_csv)
-        rmse = joint_rmse(jt, theta, gt)
-        if rmse is not None:
-            result["joint_rmse_rad"] = rmse
     return result
 
 
-def segment_evaluations(out: Path, gt: Any, align: str) -> list[dict[str, Any]]:
+def segment_evaluations(out: Path, ground_truth: Path, align: str) -> list[dict[str, Any]]:
     """APE of each ``trajectory_segment_K.tum`` (written after a restart of the smoother), each aligned on
     its own; segments with fewer than :data:`MIN_SEGMENT_POSES` poses are listed without numbers."""
     found = sorted(out.glob("trajectory_segment_*.tum"), key=lambda p: int(p.stem.rsplit("_", 1)[1]))
+    if not found:
+        return []
+    gt = load_ground_truth(ground_truth)
     results = []
     for path in found:
         t, T = read_tum(path)

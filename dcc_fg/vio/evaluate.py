@@ -232,16 +232,15 @@ def output_mode_and_alignment(out_dir: str | Path, align: str = "auto") -> tuple
     return mode, align
 
 
-def evaluate_output(out_dir: str | Path, ground_truth: str | Path, align: str = "auto") -> dict[str, Any]:
-    """Evaluate ``OUT/trajectory.tum`` (+ ``joint_angles.csv``) of a VIO run; writes ``OUT/evaluation.json``.
+def evaluate_folder(out_dir: str | Path, ground_truth: str | Path, align: str = "auto") -> dict[str, Any]:
+    """The evaluation of ``OUT/trajectory.tum`` (+ ``joint_angles.csv``) of a VIO run, without writing.
 
     ``align='auto'`` uses Sim(3) for runs whose ``summary.json`` says mode ``mono``, SE(3) otherwise.
     """
     out_dir = Path(out_dir)
-    traj = out_dir / "trajectory.tum"
     mode, align = output_mode_and_alignment(out_dir, align)
     gt = load_ground_truth(ground_truth)
-    t, T = read_tum(traj)
+    t, T = read_tum(out_dir / "trajectory.tum")
     result = {"mode": mode, "ground_truth": str(ground_truth), **evaluate_trajectory(t, T, gt, align)}
     joints_csv = out_dir / "joint_angles.csv"
     if joints_csv.is_file() and mode != "mono":
@@ -249,7 +248,13 @@ def evaluate_output(out_dir: str | Path, ground_truth: str | Path, align: str = 
         rmse = joint_rmse(jt, theta, gt)
         if rmse is not None:
             result["joint_rmse_rad"] = rmse
-    write_json(out_dir / "evaluation.json", result)
+    return result
+
+
+def evaluate_output(out_dir: str | Path, ground_truth: str | Path, align: str = "auto") -> dict[str, Any]:
+    """:func:`evaluate_folder`, written to ``OUT/evaluation.json``."""
+    result = evaluate_folder(out_dir, ground_truth, align)
+    write_json(Path(out_dir) / "evaluation.json", result)
     return result
 
 
