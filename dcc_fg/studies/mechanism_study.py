@@ -1,0 +1,497 @@
+"""Issue 14's proof on a randomized family of mechanisms: global minimum, accuracy, honest covariance.
+
+One *member* of the family (``seed``, ``L`` joints, ``K`` snapshots) goes through the real user path:
+
+1. render: :func:`dcc_fg.sim.write_dataset.write_calibration_dataset` writes the image folder,
+   ``camchain.yaml``, ``target.yaml`` and ``ground_truth.yaml`` of the random mechanism;
+2. detect: :func:`dcc_fg.sources.dataset.load_dataset` with the reader defaults of ``dcc-fg
+   calibrate`` (pairing tolerance 5 ms, >= 8 common corners; the study sits below the commands
+   layer, so it calls the loader that ``load_calibration_data`` wraps). Snapshots whose target is not
+   detected in both images are dropped; the kept ones are matched to the truth by timestamp;
+3. calibrate twice with ``CalibrationOptions()`` (``pixel_sigma=None``: both whitened with the
+   same sigma, so their costs compare): the system under test
+   :func:`dcc_fg.global_fit.calibrate_global` (automatic start) and
+   :func:`dcc_fg.calibrate.calibrate` started at the true kinematics and true joint angles;
+4. score on gauge-invariant quantities (:mod:`dcc_fg.studies.calibration_accuracy`): per-snapshot
+   ``T_ds`` errors ``[omega (rad), v (m)]``, their Cramer-Rao bound and the NEES of the reported
+   ``T_ds`` covariances.
+
+Criteria (issue 14), per L over the family:
+
+* *global minimum*: ``cost_auto <= cost_truth * (1 + 1e-6) + 1e-9`` (GTSAM's 0.5 * sum of
+  whitened squares), i.e. the automatic result is within 1e-6 relative of the best of both starts;
+  a failed automatic run is a failure; when only the start at the truth fails, the comparison has
+  no reference and the record says so (``reference = "auto only"``);
+* *accuracy*: pooled RMS error / pooled RMS CRB <= 1.5 for rotation and translation over the
+  members whose geometry is observable (truth start not refused, no direction held by a prior);
+  the CRB uses the detector's corner noise measured against the true projections
+  (``sigma_detector_px``); the bound with the truth start's a-posteriori sigma is reported too;
+* *NEES*: each member's mean NEES over its snapshots (6 dof) is treated as ONE chi-square(6) draw
+  (its snapshots share the kinematics, so their errors are not independent); the mean over M
+  members then has the 95 % interval ``chi2.ppf([0.025, 0.975], 6 M) / M`` (first-order check).
+  The interval that would hold for independent snapshots (``chi2(6 N) / N`` over all N snapshots)
+  is reported for comparison only.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+import traceback
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+from numpy.typing import NDArray
+from scipy.stats import chi2
+
+from dcc_fg.calibrate import CalibrationOptions, CalibrationResult, calibrate
+from dcc_fg.calibration_health import calibration_health
+from dcc_fg.data import CalibrationDataset
+from dcc_fg.global_fit import calibrate_global
+from dcc_fg.io.camchain import CamchainEntry, camchain_to_yaml
+from dcc_fg.io.folders import write_image_folder
+from dcc_fg.io.outputs import plain
+from dcc_fg.model import GimbalCalibration
+from dcc_fg.sim.calibration_scene import random_mechanism, simulate_calibration
+from dcc_fg.sim.render import RenderConfig
+from dcc_fg.sim.write_dataset import (
+    _frames,
+    _ground_truth_dict,
+    _rendered_poses,
+    default_target,
+    load_ground_truth,
+    scene_config,
+)
+from dcc_fg.sources.dataset import load_dataset
+from dcc_fg.studies.calibration_accuracy import T_ds_errors, cramer_rao_bound, nees_T_ds
+from dcc_fg.util.errors import EstimatorError
+
+FloatArray = NDArray[np.float64]
+
+#: Relative tolerance of the global-minimum criterion (issue 14).
+COST_REL_TOL = 1e-6
+#: Absolute slack of the cost comparison (round-off of GTSAM's error on costs of order 1e2-1e4).
+COST_ABS_TOL = 1e-9
+#: Largest pooled error / CRB ratio (issue 14).
+CRB_RATIO_MAX = 1.5
+#: Members that must reach the global minimum: 49 of 50.
+SUCCESS_FRACTION = 49.0 / 50.0
+#: Reader defaults of ``dcc-fg calibrate`` (dcc_fg.commands.calibrate.ReaderOptions).
+SYNC_TOLERANCE_NS = 5_000_000
+MIN_COMMON_POINTS = 8
+#: Degrees of freedom of one T_ds error.
+T_DS_DOF = 6
+
+
+# ------------------------------------------------------------------ rendering (temporary adapter)
+
+
+@dataclass(frozen=True)
+class RenderedMember:
+    """The files of one rendered member and what it is.
+
+    Attributes:
+        data: image folder (``cam0/``, ``cam1/``); camchain, target, ground_truth: the YAML files.
+        description: the family's description of the mechanism (link offsets m, twists, ranges rad, ...).
+        render_time_s: wall time of simulating, rendering and writing.
+    """
+
+    data: Path
+    camchain: Path
+    target: Path
+    ground_truth: Path
+    description: dict[str, Any]
+    render_time_s: float
+
+
+def render_member(seed: int, n_joints: int, n_snapshots: int, out_dir: Path) -> RenderedMember:
+    """Render member ``seed`` of the family into ``out_dir`` (TEMPORARY adapter on
+    :func:`dcc_fg.sim.calibration_scene.random_mechanism` with the pinned cameras, until
+    ``dcc_fg.sim.mechanism_family`` and ``CalibrationSimSpec(random_mechanism=...)`` exist)."""
+    t0 = time.perf_counter()
+    rng = np.random.default_rng([seed, 14])
+    mech, ranges = random_mechanism(rng, n_joints)
+    tg = default_target("checkerboard")
+    sim = simulate_calibration(seed, scene_config(tg, n_snapshots, n_joints), mechanism=(mech, ranges))
+    T_st = _rendered_poses(sim)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    data = out_dir / "images"
+    write_image_folder(data, _frames(sim, T_st, RenderConfig(), np.random.default_rng([seed, 1])))
+    cams = (sim.truth.static_camera, sim.truth.dynamic_camera)
+    assert cams[0] is not None and cams[1] is not None
+    camchain = out_dir / "camchain.yaml"
+    camchain.write_text(camchain_to_yaml({"cam0": CamchainEntry(cams[0]), "cam1": CamchainEntry(cams[1])}))
+    target = out_dir / "target.yaml"
+    target.write_text(yaml.safe_dump(tg.to_kalibr(), sort_keys=False))
+    gt = out_dir / "ground_truth.yaml"
+
+    class _Spec:  # noqa: D106
+        seed = 0
+        n_joints = 0
+        n_snapshots = 0
+        render = RenderConfig()
+
+    spec = _Spec()
+    spec.seed, spec.n_joints, spec.n_snapshots = seed, n_joints, n_snapshots
+    gt.write_text(yaml.safe_dump(_ground_truth_dict(sim, T_st, spec, data), sort_keys=False))  # type: ignore[arg-type]
+    desc = {"dh": mech.dh.tolist(), "ranges_rad": ranges.tolist(), "target": "checkerboard"}
+    return RenderedMember(data, camchain, target, gt, desc, time.perf_counter() - t0)
+
+
+# ------------------------------------------------------------------ one member
+
+
+@dataclass
+class RunOutcome:
+    """One calibration run of a member: its cost, time and, if it failed, why."""
+
+    final_error: float = math.nan
+    time_s: float = math.nan
+    iterations: int = 0
+    variance_factor: float = math.nan
+    error: str = ""  # exception type and message of a refused or failed run; "" when it ran
+    healthy: bool | None = None
+    health_failures: list[str] = field(default_factory=list)
+
+
+@dataclass
+class MechanismRecord:
+    """Everything the study measured on one member of the family.
+
+    Units: errors and bounds in rad (rotation) and m (translation), RMS over the snapshots of the
+    norm of each 3-vector; costs are GTSAM's 0.5 * sum of squared whitened residuals (sigma 1 px
+    whitening scaled as ``calibrate`` does with ``pixel_sigma=None``); times in s; sigmas in px.
+    """
+
+    seed: int
+    n_joints: int
+    n_snapshots_requested: int
+    description: dict[str, Any] = field(default_factory=dict)
+    n_snapshots: int = 0  # used (target detected in both images)
+    render_time_s: float = math.nan
+    detect_time_s: float = math.nan
+    auto: RunOutcome = field(default_factory=RunOutcome)
+    truth_start: RunOutcome = field(default_factory=RunOutcome)
+    reference: str = ""  # "best of both" or "auto only" (the truth start failed)
+    cost_rel_excess: float = math.nan  # (cost_auto - best) / best
+    success: bool = False  # global-minimum criterion
+    observable: bool = False  # truth start not refused and no direction held by a prior
+    rotation_rms: float = math.nan
+    translation_rms: float = math.nan
+    sigma_detector_px: float = math.nan  # corner noise against the true projections (RMS per axis)
+    sigma_posterior_px: float = math.nan  # a-posteriori sigma of the truth start
+    crb_rotation_rms: float = math.nan  # with sigma_detector_px
+    crb_translation_rms: float = math.nan
+    crb_posterior_rotation_rms: float = math.nan  # with sigma_posterior_px
+    crb_posterior_translation_rms: float = math.nan
+    nees_mean: float = math.nan  # mean over snapshots of the per-snapshot T_ds NEES
+    nees_dof: int = T_DS_DOF
+    T_ds_std_rotation_median: float = math.nan  # reported 1-sigma (root trace of the 3x3 block)
+    T_ds_std_translation_median: float = math.nan
+    global_info: Any = None  # result.extra["global"] of the automatic run, if any
+    held_by_prior: Any = None  # result.extra["held_by_prior"] of the automatic run, if any
+    failure: str = ""  # cause when not a clean success (empty otherwise)
+
+    @property
+    def rotation_ratio(self) -> float:
+        return self.rotation_rms / self.crb_rotation_rms if self.crb_rotation_rms > 0 else math.nan
+
+    @property
+    def translation_ratio(self) -> float:
+        return self.translation_rms / self.crb_translation_rms if self.crb_translation_rms > 0 else math.nan
+
+    @property
+    def total_time_s(self) -> float:
+        return float(np.nansum([self.render_time_s, self.detect_time_s, self.auto.time_s, self.truth_start.time_s]))
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain JSON-able mapping (non-finite numbers as None), with the ratios."""
+        d = asdict(self)
+        d["rotation_ratio"] = self.rotation_ratio
+        d["translation_ratio"] = self.translation_ratio
+        d["total_time_s"] = self.total_time_s
+        return plain(d)
+
+    @staticmethod
+    def from_dict(d: dict[str, Any]) -> MechanismRecord:
+        """Inverse of :meth:`to_dict` (None -> NaN for the float fields)."""
+        d = {k: v for k, v in d.items() if k not in ("rotation_ratio", "translation_ratio", "total_time_s")}
+        runs = {k: RunOutcome(**_nan_floats(d.pop(k), RunOutcome)) for k in ("auto", "truth_start")}
+        return MechanismRecord(**_nan_floats(d, MechanismRecord), **runs)
+
+
+def _nan_floats(d: dict[str, Any], cls: type) -> dict[str, Any]:
+    floats = {k for k, f in cls.__dataclass_fields__.items() if f.type == "float"}
+    return {k: (math.nan if v is None and k in floats else v) for k, v in d.items()}
+
+
+def _error_text(exc: BaseException) -> str:
+    return f"{type(exc).__name__}: {' '.join(str(exc).split())}"
+
+
+def with_joints(data: CalibrationDataset, thetas: FloatArray) -> CalibrationDataset:
+    """``data`` with ``thetas[i]`` (rad) as snapshot i's joint guess."""
+    return replace(data, snapshots=[replace(s, joints=t) for s, t in zip(data.snapshots, thetas, strict=True)])
+
+
+def detector_sigma(data: CalibrationDataset, truth: GimbalCalibration, thetas: FloatArray, T_st: FloatArray) -> float:
+    """RMS per axis (px) of the detected corners minus their true projections in both cameras
+    (``T_st``: true target -> static camera poses, ``T_ds(thetas)`` the true static -> dynamic)."""
+    sq, n = 0.0, 0
+    for s, th, T in zip(data.snapshots, thetas, T_st, strict=True):
+        for obs, cam, T_ct in ((s.static, data.static_camera, T), (s.dynamic, data.dynamic_camera, truth.T_ds(th) @ T)):
+            if len(obs.ids) == 0:
+                continue
+            p = data.target_points[obs.ids] @ T_ct[:3, :3].T + T_ct[:3, 3]
+            uv, _ = cam.project(p, jacobian=False)
+            sq += float(np.sum((obs.pixels - uv) ** 2))
+            n += 2 * len(obs.ids)
+    return math.sqrt(sq / n) if n else math.nan
+
+
+def _run(
+    fn: Any, data: CalibrationDataset, out: RunOutcome, health: bool
+) -> CalibrationResult | None:
+    """Run ``fn()`` (a calibration), fill ``out``; a refusal or numerical failure is recorded, not raised."""
+    t0 = time.perf_counter()
+    try:
+        res: CalibrationResult = fn()
+    except (EstimatorError, ValueError, RuntimeError, ArithmeticError, np.linalg.LinAlgError) as exc:
+        out.time_s = time.perf_counter() - t0
+        out.error = _error_text(exc)
+        return None
+    out.time_s = time.perf_counter() - t0
+    out.final_error = float(res.final_error)
+    out.iterations = int(res.iterations)
+    out.variance_factor = float(res.variance_factor)
+    if health:
+        try:
+            report = calibration_health(res, data)
+            out.healthy = report.healthy
+            out.health_failures = [f"{c.name}: {c.message}" for c in report.failures]
+        except (EstimatorError, ValueError, RuntimeError, ArithmeticError, np.linalg.LinAlgError) as exc:
+            out.healthy = False
+            out.health_failures = [f"health check crashed: {_error_text(exc)}"]
+    return res
+
+
+def study_member(
+    seed: int,
+    n_joints: int,
+    n_snapshots: int,
+    work_dir: str | Path,
+    options: CalibrationOptions | None = None,
+) -> MechanismRecord:
+    """Render, detect, calibrate (automatic and truth starts) and score one member of the family.
+
+    Never raises for a failed calibration: a refused or failed run, an unhealthy result, a missed
+    global minimum are recorded in :attr:`MechanismRecord.failure`. ``work_dir`` receives the
+    rendered data set.
+    """
+    opt = options or CalibrationOptions()
+    rec = MechanismRecord(seed, n_joints, n_snapshots)
+    try:
+        _study(rec, Path(work_dir), opt)
+    except Exception as exc:  # noqa: BLE001 - a study crash is itself a finding, recorded with its traceback
+        tb = traceback.extract_tb(exc.__traceback__)[-1]
+        rec.failure = (rec.failure + "; " if rec.failure else "") + (
+            f"study crashed: {_error_text(exc)} at {Path(tb.filename).name}:{tb.lineno}"
+        )
+        rec.success = False
+    return rec
+
+
+def _study(rec: MechanismRecord, work_dir: Path, opt: CalibrationOptions) -> None:
+    L = rec.n_joints
+    member = render_member(rec.seed, L, rec.n_snapshots_requested, work_dir)
+    rec.description, rec.render_time_s = member.description, member.render_time_s
+    t0 = time.perf_counter()
+    data = load_dataset(
+        member.data,
+        camchain=member.camchain,
+        target=member.target,
+        tolerance_ns=SYNC_TOLERANCE_NS,
+        min_common_points=MIN_COMMON_POINTS,
+        progress=False,
+    )
+    rec.detect_time_s = time.perf_counter() - t0
+    rec.n_snapshots = len(data.snapshots)
+    gt = load_ground_truth(member.ground_truth)
+    stamps = np.array([s.timestamp_ns for s in data.snapshots], dtype=np.int64)
+    thetas_true = gt.theta_at(stamps)
+    index = {int(t): k for k, t in enumerate(gt.timestamps_ns)}
+    T_st_true = gt.T_st[[index[int(t)] for t in stamps]]
+    truth = GimbalCalibration(gt.kinematics.kin.copy(), L, data.static_camera, data.dynamic_camera)
+
+    res_truth = _run(lambda: calibrate(with_joints(data, thetas_true), truth, opt), data, rec.truth_start, False)
+    res_auto = _run(lambda: calibrate_global(data, L, opt), data, rec.auto, True)
+    if res_auto is not None:
+        rec.global_info = plain(res_auto.extra.get("global"))
+        rec.held_by_prior = plain(res_auto.extra.get("held_by_prior"))
+
+    causes = []
+    if res_auto is None:
+        causes.append(f"automatic start failed: {rec.auto.error}")
+    if res_truth is None:
+        causes.append(f"truth start failed: {rec.truth_start.error}")
+    if res_auto is not None:
+        best = rec.auto.final_error if res_truth is None else min(rec.auto.final_error, rec.truth_start.final_error)
+        rec.reference = "auto only" if res_truth is None else "best of both"
+        rec.cost_rel_excess = (rec.auto.final_error - best) / best if best > 0 else 0.0
+        rec.success = bool(rec.auto.final_error <= best * (1.0 + COST_REL_TOL) + COST_ABS_TOL)
+        if not rec.success:
+            causes.append(
+                f"local minimum: cost {rec.auto.final_error:.6g} vs truth start {rec.truth_start.final_error:.6g} "
+                f"(+{100 * rec.cost_rel_excess:.3g} %)"
+            )
+        if rec.auto.healthy is False:
+            causes.append("unhealthy: " + " | ".join(rec.auto.health_failures))
+    rec.observable = res_truth is not None and not rec.held_by_prior
+
+    rec.sigma_detector_px = detector_sigma(data, truth, thetas_true, T_st_true)
+    if res_truth is not None:
+        rec.sigma_posterior_px = float(res_truth.extra["solver"]["sigma"]) * math.sqrt(res_truth.variance_factor)
+    for sigma, names in (
+        (rec.sigma_detector_px, ("crb_rotation_rms", "crb_translation_rms")),
+        (rec.sigma_posterior_px, ("crb_posterior_rotation_rms", "crb_posterior_translation_rms")),
+    ):
+        if np.isfinite(sigma) and sigma > 0:
+            crb = cramer_rao_bound(data, truth, thetas_true, T_st_true, sigma)
+            setattr(rec, names[0], crb.rotation_rms)
+            setattr(rec, names[1], crb.translation_rms)
+
+    if res_auto is not None:
+        err = T_ds_errors(truth, thetas_true, res_auto.calibration, res_auto.joint_angles)
+        rec.rotation_rms = float(np.sqrt(np.mean(np.sum(err[:, :3] ** 2, axis=1))))
+        rec.translation_rms = float(np.sqrt(np.mean(np.sum(err[:, 3:] ** 2, axis=1))))
+        cov = res_auto.T_ds_covariances
+        if cov is not None and len(cov) == len(err) and np.all(np.isfinite(cov)):
+            rec.nees_mean = float(np.mean(nees_T_ds(err, cov)))
+            rec.T_ds_std_rotation_median = float(np.median(np.sqrt(np.trace(cov[:, :3, :3], axis1=1, axis2=2))))
+            rec.T_ds_std_translation_median = float(np.median(np.sqrt(np.trace(cov[:, 3:, 3:], axis1=1, axis2=2))))
+        else:
+            causes.append("no finite T_ds covariance reported")
+    rec.failure = "; ".join(causes)
+
+
+# ------------------------------------------------------------------ aggregation per L
+
+
+def nees_interval(n_members: int, dof: int = T_DS_DOF, level: float = 0.95) -> tuple[float, float]:
+    """Two-sided ``level`` interval of the mean of ``n_members`` independent chi-square(``dof``)
+    variables: ``chi2.ppf([a, 1 - a], dof * n) / n`` with ``a = (1 - level) / 2``."""
+    if n_members < 1:
+        return math.nan, math.nan
+    a = 0.5 * (1.0 - level)
+    k = dof * n_members
+    return float(chi2.ppf(a, k) / n_members), float(chi2.ppf(1.0 - a, k) / n_members)
+
+
+def pooled_ratio(errors: Sequence[float], bounds: Sequence[float]) -> float:
+    """sqrt(sum e^2 / sum b^2): pooled RMS error over pooled RMS bound (NaN when nothing is finite)."""
+    e, b = np.asarray(errors, dtype=float), np.asarray(bounds, dtype=float)
+    ok = np.isfinite(e) & np.isfinite(b) & (b > 0)
+    return float(np.sqrt(np.sum(e[ok] ** 2) / np.sum(b[ok] ** 2))) if ok.any() else math.nan
+
+
+@dataclass
+class FamilySummary:
+    """The issue-14 verdict for one L over the members studied.
+
+    ``nees_interval`` is the first-order check described in the module docstring (each member's mean
+    NEES one chi-square(6) draw); ``nees_interval_independent`` would hold if every snapshot's error
+    were independent (reported only).
+    """
+
+    n_joints: int
+    n: int
+    successes: int
+    healthy: int
+    n_observable: int
+    rotation_ratio_pooled: float
+    translation_ratio_pooled: float
+    rotation_ratio_median: float
+    rotation_ratio_max: float
+    translation_ratio_median: float
+    translation_ratio_max: float
+    nees_mean: float
+    nees_members: int
+    nees_interval: tuple[float, float]
+    nees_interval_independent: tuple[float, float]
+    median_time_s: dict[str, float]
+    failures: list[str]
+
+    @property
+    def success_ok(self) -> bool:
+        return self.n > 0 and self.successes >= math.ceil(SUCCESS_FRACTION * self.n - 1e-9)
+
+    @property
+    def crb_ok(self) -> bool:
+        r = (self.rotation_ratio_pooled, self.translation_ratio_pooled)
+        return all(np.isfinite(x) and x <= CRB_RATIO_MAX for x in r)
+
+    @property
+    def nees_ok(self) -> bool:
+        lo, hi = self.nees_interval
+        return bool(np.isfinite(self.nees_mean) and lo <= self.nees_mean <= hi)
+
+    @property
+    def passed(self) -> bool:
+        return self.success_ok and self.crb_ok and self.nees_ok
+
+    def to_dict(self) -> dict[str, Any]:
+        d = asdict(self)
+        d.update(success_ok=self.success_ok, crb_ok=self.crb_ok, nees_ok=self.nees_ok, passed=self.passed)
+        return plain(d)
+
+
+def _median_max(x: Sequence[float]) -> tuple[float, float]:
+    a = np.asarray(x, dtype=float)
+    a = a[np.isfinite(a)]
+    return (float(np.median(a)), float(a.max())) if a.size else (math.nan, math.nan)
+
+
+def summarize(records: Sequence[MechanismRecord], n_joints: int) -> FamilySummary:
+    """Aggregate the records with ``n_joints`` joints (see :class:`FamilySummary`).
+
+    Ratios use the members whose geometry is observable and whose automatic run reached the global
+    minimum (a local minimum is counted by the success criterion, not twice); NEES uses every member
+    with a finite NEES and a successful automatic run.
+    """
+    recs = [r for r in records if r.n_joints == n_joints]
+    good = [r for r in recs if r.success and r.observable]
+    rot_mm = _median_max([r.rotation_ratio for r in good])
+    tra_mm = _median_max([r.translation_ratio for r in good])
+    nees = [r.nees_mean for r in recs if r.success and np.isfinite(r.nees_mean)]
+    n_snap = sum(r.n_snapshots for r in recs if r.success and np.isfinite(r.nees_mean))
+    times = {
+        key: float(np.nanmedian([getattr(r, attr) for r in recs])) if recs else math.nan
+        for key, attr in (("render", "render_time_s"), ("detect", "detect_time_s"), ("total", "total_time_s"))
+    }
+    for key in ("auto", "truth_start"):
+        times[key] = float(np.nanmedian([getattr(r, key).time_s for r in recs])) if recs else math.nan
+    return FamilySummary(
+        n_joints=n_joints,
+        n=len(recs),
+        successes=sum(r.success for r in recs),
+        healthy=sum(r.auto.healthy is True for r in recs),
+        n_observable=len(good),
+        rotation_ratio_pooled=pooled_ratio([r.rotation_rms for r in good], [r.crb_rotation_rms for r in good]),
+        translation_ratio_pooled=pooled_ratio(
+            [r.translation_rms for r in good], [r.crb_translation_rms for r in good]
+        ),
+        rotation_ratio_median=rot_mm[0],
+        rotation_ratio_max=rot_mm[1],
+        translation_ratio_median=tra_mm[0],
+        translation_ratio_max=tra_mm[1],
+        nees_mean=float(np.mean(nees)) if nees else math.nan,
+        nees_members=len(nees),
+        nees_interval=nees_interval(len(nees)),
+        nees_interval_independent=nees_interval(n_snap),
+        median_time_s=times,
+        failures=[f"seed {r.seed} (L={r.n_joints}): {r.failure}" for r in recs if r.failure],
+    )
