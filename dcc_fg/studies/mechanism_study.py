@@ -253,9 +253,7 @@ def detector_sigma(data: CalibrationDataset, truth: GimbalCalibration, thetas: F
     return math.sqrt(sq / n) if n else math.nan
 
 
-def _run(
-    fn: Any, data: CalibrationDataset, out: RunOutcome, health: bool
-) -> CalibrationResult | None:
+def _run(fn: Any, data: CalibrationDataset, out: RunOutcome, health: bool) -> CalibrationResult | None:
     """Run ``fn()`` (a calibration), fill ``out``; a refusal or numerical failure is recorded, not raised."""
     t0 = time.perf_counter()
     try:
@@ -355,14 +353,13 @@ def _study(rec: MechanismRecord, work_dir: Path, opt: CalibrationOptions) -> Non
     rec.sigma_detector_px = detector_sigma(data, truth, thetas_true, T_st_true)
     if res_truth is not None:
         rec.sigma_posterior_px = float(res_truth.extra["solver"]["sigma"]) * math.sqrt(res_truth.variance_factor)
-    for sigma, names in (
-        (rec.sigma_detector_px, ("crb_rotation_rms", "crb_translation_rms")),
-        (rec.sigma_posterior_px, ("crb_posterior_rotation_rms", "crb_posterior_translation_rms")),
-    ):
-        if np.isfinite(sigma) and sigma > 0:
-            crb = cramer_rao_bound(data, truth, thetas_true, T_st_true, sigma)
-            setattr(rec, names[0], crb.rotation_rms)
-            setattr(rec, names[1], crb.translation_rms)
+    # the bound scales with sigma^2: one information matrix (sigma 1 px), two noise levels
+    if np.isfinite(rec.sigma_detector_px) or np.isfinite(rec.sigma_posterior_px):
+        crb = cramer_rao_bound(data, truth, thetas_true, T_st_true, 1.0)
+        rec.crb_rotation_rms = crb.rotation_rms * rec.sigma_detector_px
+        rec.crb_translation_rms = crb.translation_rms * rec.sigma_detector_px
+        rec.crb_posterior_rotation_rms = crb.rotation_rms * rec.sigma_posterior_px
+        rec.crb_posterior_translation_rms = crb.translation_rms * rec.sigma_posterior_px
 
     if res_auto is not None:
         err = T_ds_errors(truth, thetas_true, res_auto.calibration, res_auto.joint_angles)
@@ -481,9 +478,7 @@ def summarize(records: Sequence[MechanismRecord], n_joints: int) -> FamilySummar
         healthy=sum(r.auto.healthy is True for r in recs),
         n_observable=len(good),
         rotation_ratio_pooled=pooled_ratio([r.rotation_rms for r in good], [r.crb_rotation_rms for r in good]),
-        translation_ratio_pooled=pooled_ratio(
-            [r.translation_rms for r in good], [r.crb_translation_rms for r in good]
-        ),
+        translation_ratio_pooled=pooled_ratio([r.translation_rms for r in good], [r.crb_translation_rms for r in good]),
         rotation_ratio_median=rot_mm[0],
         rotation_ratio_max=rot_mm[1],
         translation_ratio_median=tra_mm[0],
