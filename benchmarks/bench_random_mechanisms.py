@@ -68,7 +68,8 @@ def member_line(r: MechanismRecord) -> str:
 def table(summaries: list[FamilySummary]) -> str:
     """The per-L verdict table."""
     head = (
-        f"{'L':>2} {'n':>3} {'global min':>10} {'healthy':>7} {'obs':>4} {'rot/CRB pooled':>14} {'med':>5} {'max':>5} "
+        f"{'L':>2} {'n':>3} {'global min':>10} {'healthy':>7} {'obs':>4} {'prior':>5} "
+        f"{'rot/CRB pooled':>14} {'med':>5} {'max':>5} "
         f"{'tra/CRB pooled':>14} {'med':>5} {'max':>5} {'NEES':>6} {'95% interval':>15} {'t render':>8} "
         f"{'t detect':>8} {'t auto':>6} {'t truth':>7} {'verdict':>7}"
     )
@@ -77,6 +78,7 @@ def table(summaries: list[FamilySummary]) -> str:
         lo, hi = s.nees_interval
         lines.append(
             f"{s.n_joints:>2} {s.n:>3} {f'{s.successes}/{s.n}':>10} {f'{s.healthy}/{s.n}':>7} {s.n_observable:>4} "
+            f"{s.n_held_by_prior:>5} "
             f"{_fmt(s.rotation_ratio_pooled):>14} {_fmt(s.rotation_ratio_median):>5} {_fmt(s.rotation_ratio_max):>5} "
             f"{_fmt(s.translation_ratio_pooled):>14} {_fmt(s.translation_ratio_median):>5} "
             f"{_fmt(s.translation_ratio_max):>5} {_fmt(s.nees_mean):>6} {f'[{_fmt(lo)}, {_fmt(hi)}]':>15} "
@@ -128,7 +130,8 @@ def main(argv: list[str] | None = None) -> int:
         lo, hi = s.nees_interval_independent
         print(
             f"L={s.n_joints}: NEES interval if all snapshots were independent (for comparison only): "
-            f"[{_fmt(lo)}, {_fmt(hi)}]; median total time per member {_fmt(s.median_time_s['total'], '.1f')} s"
+            f"[{_fmt(lo)}, {_fmt(hi)}]; median per member: wall {_fmt(s.median_time_s['total'], '.1f')} s, "
+            f"CPU {_fmt(s.median_time_s['cpu'], '.1f')} s"
         )
     failures = [f for s in summaries for f in s.failures]
     print(f"\nfailures and findings ({len(failures)}):" if failures else "\nno failures")
