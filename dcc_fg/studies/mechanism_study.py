@@ -451,6 +451,12 @@ class FamilySummary:
         return plain(d)
 
 
+def _nanmedian(x: Sequence[float]) -> float:
+    a = np.asarray(x, dtype=float)
+    a = a[np.isfinite(a)]
+    return float(np.median(a)) if a.size else math.nan
+
+
 def _median_max(x: Sequence[float]) -> tuple[float, float]:
     a = np.asarray(x, dtype=float)
     a = a[np.isfinite(a)]
@@ -471,7 +477,7 @@ def summarize(records: Sequence[MechanismRecord], n_joints: int) -> FamilySummar
     nees = [r.nees_mean for r in recs if r.success and np.isfinite(r.nees_mean)]
     n_snap = sum(r.n_snapshots for r in recs if r.success and np.isfinite(r.nees_mean))
     times = {
-        key: float(np.nanmedian([getattr(r, attr) for r in recs])) if recs else math.nan
+        key: _nanmedian([getattr(r, attr) for r in recs])
         for key, attr in (
             ("render", "render_time_s"),
             ("detect", "detect_time_s"),
@@ -480,7 +486,7 @@ def summarize(records: Sequence[MechanismRecord], n_joints: int) -> FamilySummar
         )
     }
     for key in ("auto", "truth_start"):
-        times[key] = float(np.nanmedian([getattr(r, key).time_s for r in recs])) if recs else math.nan
+        times[key] = _nanmedian([getattr(r, key).time_s for r in recs])
     return FamilySummary(
         n_joints=n_joints,
         n=len(recs),
