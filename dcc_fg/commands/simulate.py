@@ -12,6 +12,7 @@ import numpy as np
 
 from dcc_fg.commands import common
 from dcc_fg.sim.flight_bag import write_flight
+from dcc_fg.sim.mechanism_family import describe, family_member
 from dcc_fg.sim.render import RenderConfig
 from dcc_fg.sim.trajectory import FlightConfig, locked_gimbal
 from dcc_fg.sim.write_dataset import DYNAMIC_TOPIC, STATIC_TOPIC, CalibrationSimSpec, write_calibration_dataset
@@ -25,7 +26,12 @@ CALIBRATION_DESCRIPTION = (
     "with Gaussian blur and noise. Writes OUT/images/ (folder), OUT/images.bag (ros1) or OUT/images_bag/ "
     "(ros2), plus OUT/camchain.yaml, OUT/target.yaml, OUT/gimbal.yaml (perturbed initial kinematics: "
     "+N(0, 0.03 m) on lengths, +N(0, 10 deg) on angles) and OUT/ground_truth.yaml (true kinematics, true "
-    "joint angles in rad per timestamp in ns, true T_ds and T_st per snapshot, 4x4 row-major, metres)."
+    "joint angles in rad per timestamp in ns, true T_ds and T_st per snapshot, 4x4 row-major, metres). "
+    "With --random-mechanism SEED the scenario is instead member SEED of a randomized family (dcc_fg.sim."
+    "mechanism_family): L = 1-3 joints, link offsets 0 (exactly intersecting axes, 1 in 4) or 1 mm-10 cm, twists "
+    "near 90 deg or 20-160 deg, joint ranges +-8 to +-60 deg, random radtan/equidistant cameras (640x480 to "
+    "1280x720, 50-90 deg horizontal field of view), a random checkerboard or AprilGrid and board distances "
+    "scaled to it; ground_truth.yaml then also holds the drawn 'mechanism'."
 )
 
 FLIGHT_SUMMARY = "render a VIO flight (IMU, static and gimbal camera) into a ROS1/ROS2 bag"
@@ -65,7 +71,18 @@ SIMULATE_OUT_HELP = (
 def simulate_calibration_command(args: argparse.Namespace) -> int:
     """``dcc-fg simulate calibration``."""
     render = RenderConfig(noise_sigma=args.noise, blur_sigma_px=args.blur)
-    spec = CalibrationSimSpec(args.target, args.format, args.seed, args.snapshots, args.joints, render, args.storage)
+    seed = args.random_mechanism
+    if seed is not None:
+        if args.target is not None:
+            raise ValueError("--target cannot be combined with --random-mechanism (the family draws the target)")
+        if args.joints == 0:
+            raise ValueError("--random-mechanism needs --joints 1, 2 or 3 (or none: drawn by the family)")
+    target = args.target or "checkerboard"
+    spec = CalibrationSimSpec(
+        target, args.format, args.seed, args.snapshots, args.joints, render, args.storage, random_mechanism=seed
+    )
+    if seed is not None:
+        print(describe(family_member(seed, args.joints, args.snapshots)))
     res = write_calibration_dataset(args.out, spec, force=args.force)
     print(
         f"rendered {len(res.T_st)} image pairs in {res.render_time_s:.1f} s: {res.data}\n"
@@ -116,9 +133,9 @@ def add_calibration_parser(sub: Any, parent: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--target",
         choices=["checkerboard", "aprilgrid"],
-        default="checkerboard",
+        default=None,
         help="checkerboard: 10x7 inner corners, 0.06 m squares; aprilgrid: 6x6 tag36h11 tags of 0.06 m, "
-        "spacing ratio 0.3 (default checkerboard)",
+        "spacing ratio 0.3 (default checkerboard; not allowed with --random-mechanism, which draws the target)",
     )
     p.add_argument(
         "--format",
@@ -133,11 +150,32 @@ def add_calibration_parser(sub: Any, parent: argparse.ArgumentParser) -> None:
     p.add_argument("--out", required=True, help=f"output folder (created). {SIMULATE_OUT_HELP}")
     p.add_argument("--force", action="store_true", help="replace the data set an earlier 'simulate calibration' "
                    "wrote into --out")  # fmt: skip
-    p.add_argument("--seed", type=int, default=0, help="random seed of the scene and the image noise (default 0)")
+    p.add_argument(
+        "--seed",
+        type=int,
+        default=0,
+        help="random seed of the scene and the image noise (default 0; with --random-mechanism only of the "
+        "image noise)",
+    )
+    p.add_argument(
+        "--random-mechanism",
+        type=bounded(int, 0),
+        default=None,
+        metavar="SEED",
+        help="simulate member SEED (>= 0) of the randomized mechanism family instead of the paper's scenario: "
+        "mechanism, joint ranges, both cameras' intrinsics, target and distances are drawn from SEED, which "
+        "also seeds the scene; prints a one-line description of the draw",
+    )
     p.add_argument(
         "--snapshots", type=bounded(int, 1), default=81, help="number of image pairs (snapshots), default 81"
     )
-    p.add_argument("--joints", type=int, default=2, choices=[0, 1, 2, 3], help="number of gimbal joints L (default 2)")
+    p.add_argument(
+        "--joints",
+        type=int,
+        default=None,
+        choices=[0, 1, 2, 3],
+        help="number of gimbal joints L (default 2, or drawn by --random-mechanism, which allows 1-3)",
+    )
     p.add_argument(
         "--noise",
         type=bounded(float, 0.0),

@@ -15,6 +15,12 @@ the true camera models (:mod:`dcc_fg.sim.render`) and writes::
                            (translations + N(0, 0.03 m), angles + N(0, 10 deg))
     OUT/ground_truth.yaml  the truth (format below)
 
+With ``random_mechanism=SEED`` (``--random-mechanism SEED``) the scenario is member ``SEED`` of the
+randomized family (:mod:`dcc_fg.sim.mechanism_family`: its kinematics, joint ranges, cameras,
+target and board distances, L drawn unless ``n_joints`` is given); its corner-level scene is
+:func:`~dcc_fg.sim.mechanism_family.simulate_member` (seeded by ``SEED``), ``seed`` then only seeds
+the image noise, and ``target`` is not used.
+
 No joint angles are written with the images (an encoderless recording).  The dynamic image of
 each snapshot is stamped ``DYNAMIC_STAMP_OFFSET_NS`` after the static one (a realistic trigger
 skew well inside the default 5 ms pairing tolerance).
@@ -24,6 +30,9 @@ maps points from frame b into frame a)::
 
     format: dcc-fg ground truth 1
     seed, scene: {...}, render: {...}     # how the data were made
+    random_mechanism: SEED, mechanism: {...}  # only with --random-mechanism: the family member's
+                                             # description, plus achieved_half_range_deg and
+                                             # achieved_std_deg of the true angles simulated
     data: images | images.bag | images_bag
     target: {Kalibr target}
     kinematics: {joints, tau_s, tau_d, dh}   # the true mechanism (gimbal.yaml schema)
@@ -57,6 +66,7 @@ from dcc_fg.io.output_set import OutputSet
 from dcc_fg.io.outputs import write_text_atomic
 from dcc_fg.model import GimbalCalibration
 from dcc_fg.sim.calibration_scene import SceneConfig, SimulatedCalibration, simulate_calibration
+from dcc_fg.sim.mechanism_family import FamilyMember, achieved_spread, family_member, simulate_member
 from dcc_fg.sim.render import RenderConfig, aprilgrid_view_flip, make_texture, render_view
 from dcc_fg.targets import TargetGeometry
 
@@ -154,22 +164,28 @@ class CalibrationSimSpec:
     """What :func:`write_calibration_dataset` simulates and how it writes it.
 
     Attributes:
-        target: ``checkerboard`` or ``aprilgrid`` (see :func:`default_target`).
+        target: ``checkerboard`` or ``aprilgrid`` (see :func:`default_target`); not used with
+            ``random_mechanism``.
         fmt: ``folder``, ``ros1`` or ``ros2``.
-        seed: seed of the scene and of the image noise.
+        seed: seed of the scene and of the image noise (only of the image noise with
+            ``random_mechanism``).
         n_snapshots: image pairs (the scene's jittered grid over the joint space).
-        n_joints: L in {0, 1, 2, 3}.
+        n_joints: L in {0, 1, 2, 3}; None: 2, or drawn by the family with ``random_mechanism``
+            (which allows 1 to 3).
         render: image formation (noise, blur, ...).
         storage: ROS2 storage plugin.
+        random_mechanism: seed of a member of the randomized mechanism family
+            (:func:`~dcc_fg.sim.mechanism_family.family_member`), None for the pinned scene.
     """
 
     target: str = "checkerboard"
     fmt: Format = "folder"
     seed: int = 0
     n_snapshots: int = 81
-    n_joints: int = 2
+    n_joints: int | None = None
     render: RenderConfig = field(default_factory=RenderConfig)
     storage: Literal["sqlite3", "mcap"] = "sqlite3"
+    random_mechanism: int | None = None
 
 
 def _write_images(data: Path, frames: Iterator[FramePair], spec: CalibrationSimSpec) -> None:
@@ -183,16 +199,28 @@ def _write_images(data: Path, frames: Iterator[FramePair], spec: CalibrationSimS
 
 
 def _ground_truth_dict(
-    sim: SimulatedCalibration, T_st: FloatArray, spec: CalibrationSimSpec, data: Path
+    sim: SimulatedCalibration,
+    T_st: FloatArray,
+    spec: CalibrationSimSpec,
+    data: Path,
+    member: FamilyMember | None = None,
 ) -> dict[str, Any]:
     """The content of ``ground_truth.yaml`` (format in the module docstring)."""
     cfg = sim.config
     tg = cfg.target
+    head: dict[str, Any] = {"format": "dcc-fg ground truth 1", "seed": spec.seed}
+    if member is not None:
+        spread = achieved_spread(sim)
+        head["random_mechanism"] = member.seed
+        head["mechanism"] = {
+            **member.description,
+            "achieved_half_range_deg": spread["half_range_deg"],
+            "achieved_std_deg": spread["std_deg"],
+        }
     return {
-        "format": "dcc-fg ground truth 1",
-        "seed": spec.seed,
+        **head,
         "scene": {
-            "joints": spec.n_joints,
+            "joints": sim.truth.n_joints,
             "snapshots": spec.n_snapshots,
             "distance_range_m": list(cfg.distance_range),
             "board_tilt_max_rad": cfg.board_tilt,
@@ -229,11 +257,13 @@ def write_calibration_dataset(
         out: output folder (created). It must not hold any of the data set's names (``images``,
             ``camchain.yaml``, ...) nor be another command's result folder.
         spec: what to simulate and write (default :class:`CalibrationSimSpec`: 81 checkerboard
-            image pairs of the 2-joint scene in an image folder, seed 0).
+            image pairs of the 2-joint scene in an image folder, seed 0; with
+            ``spec.random_mechanism`` the family member of that seed).
         force: replace a data set written earlier into ``out`` by ``simulate calibration``.
 
     Raises:
-        ValueError: unknown target/format, or ``out`` already holds a data set (without ``force``).
+        ValueError: unknown target/format, a random mechanism with a number of joints outside
+            1-3 or a negative seed, or ``out`` already holds a data set (without ``force``).
     """
     spec = spec or CalibrationSimSpec()
     if spec.fmt not in DATA_NAMES:
@@ -248,8 +278,15 @@ def write_calibration_dataset(
         replace_hint="pass --force to replace the data set simulated there before",
         replace_unowned=False,
     )
-    tg = default_target(spec.target)
-    sim = simulate_calibration(spec.seed, scene_config(tg, spec.n_snapshots, spec.n_joints))
+    member = None
+    if spec.random_mechanism is not None:
+        member = family_member(spec.random_mechanism, spec.n_joints, spec.n_snapshots)
+        tg = member.scene.target
+        sim = simulate_member(member)
+    else:
+        tg = default_target(spec.target)
+        n_joints = 2 if spec.n_joints is None else spec.n_joints
+        sim = simulate_calibration(spec.seed, scene_config(tg, spec.n_snapshots, n_joints))
     T_st = _rendered_poses(sim)
     rng = np.random.default_rng([spec.seed, 1])  # image noise, independent of the scene's stream
     with outputs:
@@ -266,7 +303,7 @@ def write_calibration_dataset(
         write_text_atomic(paths["camchain"], camchain_to_yaml(entries))
         write_text_atomic(paths["target"], yaml.safe_dump(tg.to_kalibr(), sort_keys=False))
         write_text_atomic(paths["gimbal"], yaml.safe_dump(_kinematics_dict(sim.initial), sort_keys=False))
-        truth = _ground_truth_dict(sim, T_st, spec, data)
+        truth = _ground_truth_dict(sim, T_st, spec, data, member)
         write_text_atomic(paths["ground_truth"], yaml.safe_dump(truth, sort_keys=False))
     final = {name: out / p.name for name, p in paths.items()}
     return RenderedCalibration(
