@@ -7,45 +7,47 @@ start reaches the same optimum: per-snapshot T_ds errors within 1.5x of the refe
 
 from __future__ import annotations
 
-import time
-from dataclasses import replace
+import importlib.util
+import sys
+from pathlib import Path
+from types import ModuleType
 
 import numpy as np
 import pytest
 
 from dcc_fg import load_calibration
 from dcc_fg.auto_init import SCREEN_SNAPSHOTS, auto_initialize, pnp_T_ds, rotation_ik_three_joints
-from dcc_fg.calibrate import CalibrationOptions, CalibrationResult, calibrate
+from dcc_fg.calibrate import CalibrationOptions, calibrate
 from dcc_fg.cli import main
-from dcc_fg.data import CalibrationDataset
 from dcc_fg.init import pose_level_refine
 from dcc_fg.io.camchain import CamchainEntry, camchain_to_yaml
 from dcc_fg.io.outputs import read_joint_angles_csv
-from dcc_fg.sim.calibration_scene import SceneConfig, random_mechanism, simulate_calibration
+from dcc_fg.sim.calibration_scene import SceneConfig, simulate_calibration
 from dcc_fg.sources.detections import write_detection_csv
-from dcc_fg.studies.calibration_accuracy import T_ds_errors, evaluate_against_truth
+from dcc_fg.studies.calibration_accuracy import T_ds_errors
 from dcc_fg.targets import TargetGeometry
 from factors import chain
 
-N_GEOMETRIES = 50
-N_REQUIRED = 48  # the issue's requirement; 49 converge (geometry 1 is refused as unobservable, below)
+BENCH = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_auto_init.py"
+
 FAST = CalibrationOptions(compute_covariance=False)
+# The issue's study (50 random geometries, at least 48 must converge) is benchmarks/bench_auto_init.py;
+# CI runs this fixed subset of it: geometry 1 is a degenerate draw that calibrate() refuses as
+# unobservable (the reference start too), every other one must converge.
+SUBSET = range(9)
+REFUSED = {1}
 
 
-def calibrate_auto(data: CalibrationDataset, n_joints: int) -> CalibrationResult:
-    """The `--init auto` path: automatic initial values, then the full corner-level calibration."""
-    initial, thetas, _ = auto_initialize(
-        replace(data, snapshots=[replace(s, joints=None) for s in data.snapshots]), n_joints
-    )
-    seeded = replace(data, snapshots=[replace(s, joints=t) for s, t in zip(data.snapshots, thetas, strict=True)])
-    return calibrate(seeded, initial, FAST)
+def _bench() -> ModuleType:
+    spec = importlib.util.spec_from_file_location("bench_auto_init", BENCH)
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # dataclasses resolve annotations through sys.modules
+    spec.loader.exec_module(module)
+    return module
 
 
-def same_accuracy(sim, auto: CalibrationResult, ref: CalibrationResult) -> tuple[bool, float, float]:
-    ea = evaluate_against_truth(auto, sim.truth, sim.joints_calibration)
-    er = evaluate_against_truth(ref, sim.truth, sim.joints_calibration)
-    r_rot, r_tr = ea.rotation_rms / er.rotation_rms, ea.translation_rms / er.translation_rms
-    return bool(r_rot <= 1.5 and r_tr <= 1.5), r_rot, r_tr
+bench = _bench()
 
 
 def test_three_joint_rotation_ik_inverts_the_chain() -> None:
@@ -81,61 +83,36 @@ def test_two_joint_starts_ranked_on_a_subset_of_many_snapshots() -> None:
 
 @pytest.mark.slow
 def test_random_two_joint_geometries_converge_without_gimbal_yaml() -> None:
-    rng = np.random.default_rng(2024)
-    ok, lines = 0, []
-    t0 = time.perf_counter()
-    for g in range(N_GEOMETRIES):
-        mech = random_mechanism(rng, 2)
-        sim = simulate_calibration(100 + g, SceneConfig(n_calibration=25, n_validation=1), mechanism=mech)
-        try:
-            auto = calibrate_auto(sim.calibration_set, 2)
-            ref = calibrate(sim.calibration_set, sim.initial, FAST)
-            good, r_rot, r_tr = same_accuracy(sim, auto, ref)
-            lines.append(
-                f"{g}: {good} rot x{r_rot:.3f} tr x{r_tr:.3f} cost {auto.final_error:.2f}/{ref.final_error:.2f}"
-            )
-        except ValueError as exc:  # a degenerate draw refused as unobservable (geometry 1, reference run too)
-            good = False
-            lines.append(f"{g}: error {exc}")
-        ok += good
-    print("\n".join(lines))
-    print(f"{ok}/{N_GEOMETRIES} converged, {time.perf_counter() - t0:.1f} s")
-    assert ok >= N_REQUIRED
+    """A fixed subset of the 50-geometry study of benchmarks/bench_auto_init.py (measured there:
+    49/50 converge, geometry 1 refused): the automatic start reaches the reference optimum on every
+    geometry of SUBSET but the refused one, and that one is refused with the unobservable directions
+    named, not fitted."""
+    mechs = bench.mechanisms(max(SUBSET) + 1)
+    outcomes = [bench.run_geometry(g, mechs[g]) for g in SUBSET]
+    print("\n" + "\n".join(o.line() for o in outcomes))
+    for o in outcomes:
+        if o.index in REFUSED:
+            assert not o.ok and "unobservable directions" in o.error, o.line()
+        else:
+            assert o.ok, o.line()
 
 
-# L = 1 and L = 3 over seeds of the pinned scenes (81 snapshots each); the seed counts keep this file's
-# CI time in budget (L = 3 costs 15-50 s per seed, mostly the two corner-level solves). Measured with
-# the variable-projection search of dcc_fg/auto_init.py: L = 3 seeds 0-19 all converge, L = 1 seeds
-# 0-9 all converge; before it, 5 of L = 3 seeds 0-9 did.
-PINNED_SEEDS = {1: (range(5), 5), 3: (range(6), 5)}  # L: (seeds, required successes)
+# L = 1 and L = 3 over seeds of the pinned scenes (81 snapshots each); the full studies are
+# `benchmarks/bench_auto_init.py --pinned-joints L --n 20`. Measured with the variable-projection search
+# of dcc_fg/auto_init.py: L = 3 seeds 0-19 all converge, L = 1 seeds 0-9 all converge (before it, 5 of
+# L = 3 seeds 0-9 did). An L = 3 seed costs two near-degenerate corner-level solves (40-80 LM
+# iterations each, ~20 s single-process), so CI runs three of them.
+PINNED_SEEDS = {1: range(5), 3: range(3)}
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("n_joints", [1, 3])
 def test_pinned_mechanisms_converge_without_gimbal_yaml(n_joints: int) -> None:
-    seeds, required = PINNED_SEEDS[n_joints]
-    ok, lines = 0, []
-    t0 = time.perf_counter()
-    for seed in seeds:
-        t_seed = time.perf_counter()
-        sim = simulate_calibration(seed, SceneConfig(n_joints=n_joints, n_validation=1))
-        try:
-            auto = calibrate_auto(sim.calibration_set, n_joints)
-            ref = calibrate(sim.calibration_set, sim.initial, FAST)
-            good, r_rot, r_tr = same_accuracy(sim, auto, ref)
-            # the automatic start reaches the reference optimum, or a lower one
-            good &= auto.final_error <= ref.final_error * (1 + 1e-6)
-            lines.append(
-                f"L={n_joints} seed {seed}: {good} rot x{r_rot:.3f} tr x{r_tr:.3f} "
-                f"cost {auto.final_error:.3f}/{ref.final_error:.3f}, {time.perf_counter() - t_seed:.1f} s"
-            )
-        except ValueError as exc:
-            good = False
-            lines.append(f"L={n_joints} seed {seed}: error {exc}")
-        ok += good
-    print("\n".join(lines))
-    print(f"L={n_joints}: {ok}/{len(seeds)} converged, {time.perf_counter() - t0:.1f} s")
-    assert ok >= required
+    """Every seed of the subset: the automatic start reaches the reference start's T_ds accuracy
+    (within 1.5x) and its optimum or a lower one."""
+    outcomes = [bench.run_pinned(seed, n_joints) for seed in PINNED_SEEDS[n_joints]]
+    print("\n" + "\n".join(f"L={n_joints} seed {o.line()}" for o in outcomes))
+    assert all(o.ok for o in outcomes), [o.line() for o in outcomes if not o.ok]
 
 
 def test_cli_calibrate_without_gimbal_yaml(tmp_path, capsys) -> None:

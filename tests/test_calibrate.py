@@ -2,10 +2,15 @@
 
 from __future__ import annotations
 
+import importlib.util
+import sys
 from dataclasses import replace
+from pathlib import Path
+from types import ModuleType
 
 import numpy as np
 import pytest
+from scipy.stats import chi2
 
 import dcc_fg.calibrate as calibrate_module
 import dcc_fg.calibration_graph as calibration_graph
@@ -16,11 +21,12 @@ from dcc_fg.calibration_graph import build_graph, gauge_fixed_joint_offsets, gau
 from dcc_fg.covariance import graph_marginals, information_schur, null_space
 from dcc_fg.data import Observation
 from dcc_fg.sim.calibration_scene import SceneConfig, simulate_calibration, simulate_snapshots
-from dcc_fg.studies.calibration_accuracy import cramer_rao_bound, evaluate_against_truth
+from dcc_fg.studies.calibration_accuracy import evaluate_against_truth
 from dcc_fg.targets import TargetGeometry
 from dcc_fg.util.errors import EstimatorError
 
 PAPER_JOINT_ERR = (5.89e-3, 2.38e-3)  # Table II, calibration set
+BENCH_STATISTICS = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_statistics.py"
 
 
 def test_demo_accuracy_beats_paper_table_ii(demo_sim, demo_result) -> None:
@@ -60,43 +66,48 @@ def test_gauge_rules_remove_exactly_the_null_space(L: int) -> None:
         assert null_space(S[np.ix_(~fixed, ~fixed)]).shape[1] == len(gauge_fixed_joint_offsets(L, mode))
 
 
+def _bench_statistics() -> ModuleType:
+    spec = importlib.util.spec_from_file_location("bench_statistics", BENCH_STATISTICS)
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # dataclasses resolve annotations through sys.modules
+    spec.loader.exec_module(module)
+    return module
+
+
+bench_statistics = _bench_statistics()
+
+
 def _seed_study(n_joints: int, seeds: range) -> dict[str, np.ndarray]:
-    """Encoderless calibration of the pinned L-joint mechanism over ``seeds`` (the 20-seed protocol
-    of tests/test_statistics.py): per seed the iterations, the RMS residual per axis, the mean
-    |offset-free joint error| per joint, and the error and Cramer-Rao RMS of T_ds and the joints."""
-    rows: dict[str, list] = {
-        k: [] for k in ("it", "px", "mean_abs", "rot", "tra", "joint", "b_rot", "b_tra", "b_joint")
-    }
-    for seed in seeds:
-        sim = simulate_calibration(seed, SceneConfig(n_joints=n_joints, n_validation=1))
-        res = calibrate(sim.calibration_set, sim.initial, CalibrationOptions(compute_covariance=False))
-        err = evaluate_against_truth(res, sim.truth, sim.joints_calibration)
-        crb = cramer_rao_bound(sim.calibration_set, sim.truth, sim.joints_calibration, sim.T_st_calibration, 0.4)
-        for k, v in (
-            ("it", res.iterations),
-            ("px", res.reprojection_stats()["all"]["rms_per_axis"]),
-            ("mean_abs", np.abs(err.joints).mean(axis=0)),
-            ("rot", err.rotation_rms),
-            ("tra", err.translation_rms),
-            ("joint", err.joint_rms),
-            ("b_rot", crb.rotation_rms),
-            ("b_tra", crb.translation_rms),
-            ("b_joint", crb.joint_rms),
-        ):
-            rows[k].append(v)
-    out = {k: np.array(v) for k, v in rows.items()}
-    rms = lambda x: np.sqrt(np.mean(np.square(x), axis=0))  # noqa: E731
-    ratios = {k: rms(out[k]) / rms(out["b_" + k]) for k in ("rot", "tra", "joint")}
+    """Encoderless calibration of the pinned L-joint mechanism over ``seeds`` (the protocol of
+    benchmarks/bench_statistics.py, which runs the full 20-seed studies): per seed the iterations and
+    the RMS residual per axis; over the seeds the mean |offset-free joint error| per joint and the RMS
+    errors of T_ds and of the joints over their Cramer-Rao RMS."""
+    runs = [bench_statistics.run_seed(seed, n_joints) for seed in seeds]
+    s = bench_statistics.summarize(runs)
     print(
-        f"\nL={n_joints}, {len(seeds)} seeds: iterations max {out['it'].max()}; RMS residual per axis "
-        f"{out['px'].min():.4f}-{out['px'].max():.4f} px; RMS over seeds / CRB: T_ds rotation "
-        f"{rms(out['rot']):.3e} / {rms(out['b_rot']):.3e} (x{ratios['rot']:.3f}), translation "
-        f"{rms(out['tra']):.3e} / {rms(out['b_tra']):.3e} (x{ratios['tra']:.3f}), joints {rms(out['joint'])} / "
-        f"{rms(out['b_joint'])} (x{np.round(ratios['joint'], 3)}); mean |offset-free joint error| "
-        f"{out['mean_abs'].mean(axis=0)} rad (worst seed {out['mean_abs'].max(axis=0)})"
+        f"\nL={n_joints}, {len(runs)} seeds: iterations {[r.iterations for r in runs]}; RMS residual per axis "
+        f"{np.round(s['rms_px'], 4)} px; RMS over seeds / CRB: T_ds rotation x{s['ratio_rot']:.3f}, translation "
+        f"x{s['ratio_tra']:.3f}, joints x{np.round(s['ratio_joint'], 3)}; mean |offset-free joint error| "
+        f"{np.round(s['mean_abs_joint'], 6)} rad"
     )
-    out.update({"ratio_" + k: np.atleast_1d(v) for k, v in ratios.items()})
-    return out
+    return {
+        "it": np.array([r.iterations for r in runs]),
+        "px": np.array(s["rms_px"]),
+        "mean_abs": np.array(s["mean_abs_joint"]),
+        "ratio_rot": np.atleast_1d(s["ratio_rot"]),
+        "ratio_tra": np.atleast_1d(s["ratio_tra"]),
+        "ratio_joint": np.array(s["ratio_joint"]),
+    }
+
+
+def crb_ratio_limit(n_seeds: int, dof_per_seed: int) -> float:
+    """Upper 99 % point of RMS error / Cramer-Rao RMS over ``n_seeds`` seeds for an efficient
+    estimator whose error has ``dof_per_seed`` independent Gaussian components per seed (the
+    squared ratio is then chi-square(n dof) / (n dof)). One component per joint and six per T_ds
+    are the conservative counts: the errors of the 81 snapshots of one seed share the kinematics."""
+    n = n_seeds * dof_per_seed
+    return float(np.sqrt(chi2.ppf(0.99, n) / n))
 
 
 @pytest.mark.slow
@@ -108,24 +119,32 @@ def test_one_joint_mechanism_reaches_the_cramer_rao_bound() -> None:
     assert r["it"].max() < CalibrationOptions().max_iterations
     assert np.all(np.abs(r["px"] - 0.4) < 0.04)
     assert r["ratio_rot"][0] < 1.2 and r["ratio_tra"][0] < 1.2 and np.all(r["ratio_joint"] < 1.2)
-    assert np.all(r["mean_abs"].mean(axis=0) < PAPER_JOINT_ERR[0])
+    assert np.all(r["mean_abs"] < PAPER_JOINT_ERR[0])
+
+
+L3_SEEDS = range(3)
 
 
 @pytest.mark.slow
 def test_three_joint_mechanism_converges() -> None:
-    """L = 3, the pinned pan-tilt-roll mechanism (dcc_fg/sim/calibration_scene.py), over 20 seeds:
-    every run stops on its tolerance, not on the iteration cap, at the noise floor, and the RMS
-    errors of T_ds and of the offset-free joint angles are within 1.2x of the Cramer-Rao bound.
+    """L = 3, the pinned pan-tilt-roll mechanism (dcc_fg/sim/calibration_scene.py), seeds 0-2: every
+    run stops on its tolerance, not on the iteration cap, at the noise floor, and the RMS errors of
+    T_ds and of the offset-free joint angles are within the 99 % sampling bound of an efficient
+    estimator over three seeds (:func:`crb_ratio_limit`: 1.39x of the Cramer-Rao bound for T_ds,
+    1.94x per joint).
 
-    Three axes span all rotations, so the joint-angle bound of an L = 3 mechanism is set by lever
-    arms and is several times that of L = 2 (CRB RMS ~5.5e-3, 4.8e-3, 8.2e-3 rad on this geometry):
-    the mean |error| over seeds of every joint is below the paper's joint-1 error (Table II,
-    5.89e-3 rad), but joints 2 and 3 are not below the paper's joint-2 error (2.38e-3 rad)."""
-    r = _seed_study(3, range(20))
+    An L = 3 seed costs ~20 s single-process: the nearly degenerate problem takes 40-80
+    Levenberg-Marquardt iterations (L = 2: ~7). The 20-seed study is
+    ``benchmarks/bench_statistics.py --joints 3`` (within 1.2x of the bound; the mean |error| over
+    seeds of every joint below the paper's joint-1 error, Table II, 5.89e-3 rad). Three axes span all
+    rotations, so the joint-angle bound of an L = 3 mechanism is set by lever arms and is several
+    times that of L = 2 (CRB RMS ~5.5e-3, 4.8e-3, 8.2e-3 rad on this geometry)."""
+    r = _seed_study(3, L3_SEEDS)
     assert r["it"].max() < CalibrationOptions().max_iterations
     assert np.all(np.abs(r["px"] - 0.4) < 0.04)
-    assert r["ratio_rot"][0] < 1.2 and r["ratio_tra"][0] < 1.2 and np.all(r["ratio_joint"] < 1.2)
-    assert np.all(r["mean_abs"].mean(axis=0) < PAPER_JOINT_ERR[0])
+    pose_limit, joint_limit = crb_ratio_limit(len(L3_SEEDS), 6), crb_ratio_limit(len(L3_SEEDS), 1)
+    assert r["ratio_rot"][0] < pose_limit and r["ratio_tra"][0] < pose_limit
+    assert np.all(r["ratio_joint"] < joint_limit)
 
 
 def test_encoders_mode_with_true_angles(demo_sim) -> None:
