@@ -46,7 +46,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 from numpy.typing import NDArray
 from scipy.stats import chi2
 
@@ -54,20 +53,9 @@ from dcc_fg.calibrate import CalibrationOptions, CalibrationResult, calibrate
 from dcc_fg.calibration_health import calibration_health
 from dcc_fg.data import CalibrationDataset
 from dcc_fg.global_fit import calibrate_global
-from dcc_fg.io.camchain import CamchainEntry, camchain_to_yaml
-from dcc_fg.io.folders import write_image_folder
 from dcc_fg.io.outputs import plain
 from dcc_fg.model import GimbalCalibration
-from dcc_fg.sim.calibration_scene import random_mechanism, simulate_calibration
-from dcc_fg.sim.render import RenderConfig
-from dcc_fg.sim.write_dataset import (
-    _frames,
-    _ground_truth_dict,
-    _rendered_poses,
-    default_target,
-    load_ground_truth,
-    scene_config,
-)
+from dcc_fg.sim.write_dataset import CalibrationSimSpec, load_ground_truth, write_calibration_dataset
 from dcc_fg.sources.dataset import load_dataset
 from dcc_fg.studies.calibration_accuracy import T_ds_errors, cramer_rao_bound, nees_T_ds
 from dcc_fg.util.errors import EstimatorError
@@ -89,7 +77,7 @@ MIN_COMMON_POINTS = 8
 T_DS_DOF = 6
 
 
-# ------------------------------------------------------------------ rendering (temporary adapter)
+# ------------------------------------------------------------------ rendering
 
 
 @dataclass(frozen=True)
@@ -98,8 +86,9 @@ class RenderedMember:
 
     Attributes:
         data: image folder (``cam0/``, ``cam1/``); camchain, target, ground_truth: the YAML files.
-        description: the family's description of the mechanism (link offsets m, twists, ranges rad, ...).
-        render_time_s: wall time of simulating, rendering and writing.
+        description: the family's description of the member (``ground_truth.yaml``'s ``mechanism``:
+            links m, twists deg, requested and achieved joint ranges deg, target, cameras, distances).
+        render_time_s: wall time of simulating, rendering and writing the data set.
     """
 
     data: Path
@@ -111,37 +100,17 @@ class RenderedMember:
 
 
 def render_member(seed: int, n_joints: int, n_snapshots: int, out_dir: Path) -> RenderedMember:
-    """Render member ``seed`` of the family into ``out_dir`` (TEMPORARY adapter on
-    :func:`dcc_fg.sim.calibration_scene.random_mechanism` with the pinned cameras, until
-    ``dcc_fg.sim.mechanism_family`` and ``CalibrationSimSpec(random_mechanism=...)`` exist)."""
+    """Render member ``seed`` of the family (:mod:`dcc_fg.sim.mechanism_family`) with ``n_joints``
+    joints and ``n_snapshots`` image pairs into ``out_dir`` as ``dcc-fg simulate calibration
+    --random-mechanism SEED --joints L --snapshots K --format folder --seed SEED`` does."""
     t0 = time.perf_counter()
-    rng = np.random.default_rng([seed, 14])
-    mech, ranges = random_mechanism(rng, n_joints)
-    tg = default_target("checkerboard")
-    sim = simulate_calibration(seed, scene_config(tg, n_snapshots, n_joints), mechanism=(mech, ranges))
-    T_st = _rendered_poses(sim)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    data = out_dir / "images"
-    write_image_folder(data, _frames(sim, T_st, RenderConfig(), np.random.default_rng([seed, 1])))
-    cams = (sim.truth.static_camera, sim.truth.dynamic_camera)
-    assert cams[0] is not None and cams[1] is not None
-    camchain = out_dir / "camchain.yaml"
-    camchain.write_text(camchain_to_yaml({"cam0": CamchainEntry(cams[0]), "cam1": CamchainEntry(cams[1])}))
-    target = out_dir / "target.yaml"
-    target.write_text(yaml.safe_dump(tg.to_kalibr(), sort_keys=False))
-    gt = out_dir / "ground_truth.yaml"
-
-    class _Spec:  # noqa: D106
-        seed = 0
-        n_joints = 0
-        n_snapshots = 0
-        render = RenderConfig()
-
-    spec = _Spec()
-    spec.seed, spec.n_joints, spec.n_snapshots = seed, n_joints, n_snapshots
-    gt.write_text(yaml.safe_dump(_ground_truth_dict(sim, T_st, spec, data), sort_keys=False))  # type: ignore[arg-type]
-    desc = {"dh": mech.dh.tolist(), "ranges_rad": ranges.tolist(), "target": "checkerboard"}
-    return RenderedMember(data, camchain, target, gt, desc, time.perf_counter() - t0)
+    spec = CalibrationSimSpec(
+        fmt="folder", seed=seed, n_snapshots=n_snapshots, n_joints=n_joints, random_mechanism=seed
+    )
+    out = write_calibration_dataset(out_dir, spec)
+    elapsed = time.perf_counter() - t0
+    raw = load_ground_truth(out.ground_truth).raw
+    return RenderedMember(out.data, out.camchain, out.target, out.ground_truth, dict(raw.get("mechanism", {})), elapsed)
 
 
 # ------------------------------------------------------------------ one member
