@@ -110,7 +110,11 @@ def main(argv: list[str] | None = None) -> int:
             pool.submit(run_member, seed, L, args.snapshots): (seed, L) for seed, L in jobs
         }
         for fut in as_completed(futures):
-            rec = fut.result()
+            try:
+                rec = fut.result()
+            except Exception as exc:  # noqa: BLE001 - a dead worker (e.g. a crash in native code) is a finding
+                seed, L = futures[fut]
+                rec = MechanismRecord(seed, L, args.snapshots, failure=f"worker failed: {type(exc).__name__}: {exc}")
             records.append(rec)
             print(f"[{len(records)}/{len(jobs)} {time.perf_counter() - t0:.0f} s] {member_line(rec)}", flush=True)
     wall = time.perf_counter() - t0
