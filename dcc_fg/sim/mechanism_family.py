@@ -260,11 +260,11 @@ def _draw_target(rng: np.random.Generator, kind: str) -> TargetGeometry:
 
 
 def _board_fits(
-    T_ds: FloatArray, target: TargetGeometry, cams: tuple[CameraModel, CameraModel], dist: float, margin: float
+    T_ds: FloatArray, pts: FloatArray, cams: tuple[CameraModel, CameraModel], dist: float, margin: float
 ) -> bool:
-    """Untilted board aimed as the scene aims it (half way between the optical axes at ``dist``):
-    every corner in front of and ``margin`` px inside both images."""
-    pts = target.points
+    """Untilted board (corners ``pts`` (M, 3) in the target frame, m) aimed as the scene aims it (half
+    way between the optical axes at ``dist``): every corner in front of and ``margin`` px inside both
+    images."""
     R_sd = T_ds[:3, :3].T
     c_d = -R_sd @ T_ds[:3, 3]
     aim = 0.5 * (np.array([0.0, 0.0, dist]) + c_d + dist * R_sd[:, 2])
@@ -289,12 +289,13 @@ def _distance_range(
     T_ds_mid: FloatArray, target: TargetGeometry, cams: tuple[CameraModel, CameraModel], margin: float
 ) -> tuple[float, float]:
     """(z_min, z_detect), metres (see the module docstring)."""
-    diag = float(np.hypot(*target.size))
+    pts = target.points
+    diag = float(np.hypot(*np.ptp(pts[:, :2], axis=0)))
     baseline = float(np.linalg.norm(T_ds_mid[:3, 3]))
     z = max(1.1 * (diag + baseline) * max(c.intrinsics[:2]) / min(c.resolution) for c in cams)
     for _ in range(60):
-        if _board_fits(T_ds_mid, target, cams, z, 2.0 * margin) and _board_fits(
-            T_ds_mid, target, cams, 2.0 * z, 2.0 * margin
+        if _board_fits(T_ds_mid, pts, cams, z, 2.0 * margin) and _board_fits(
+            T_ds_mid, pts, cams, 2.0 * z, 2.0 * margin
         ):
             z *= DISTANCE_SLACK
             size, min_px = _feature_m(target)
