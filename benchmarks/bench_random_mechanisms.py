@@ -58,7 +58,8 @@ def member_line(r: MechanismRecord) -> str:
         f"L={r.n_joints} seed={r.seed:<4d} {status} K={r.n_snapshots:<3d} cost auto {_fmt(r.auto.final_error, '.6g')} "
         f"truth {_fmt(r.truth_start.final_error, '.6g')} | rot {_fmt(1e3 * r.rotation_rms)} mrad "
         f"({_fmt(r.rotation_ratio)} x CRB) tra {_fmt(1e3 * r.translation_rms)} mm ({_fmt(r.translation_ratio)} x CRB) "
-        f"| NEES {_fmt(r.nees_mean)} | sigma det {_fmt(r.sigma_detector_px)} px "
+        f"| NEES {_fmt(r.nees_mean)} | sigma det {_fmt(r.sigma_detector_px)} px, truth excess chi2 "
+        f"{_fmt(r.truth_excess_chi2)}/{r.truth_excess_dof} "
         f"| t render {_fmt(r.render_time_s, '.1f')} detect {_fmt(r.detect_time_s, '.1f')} "
         f"auto {_fmt(r.auto.time_s, '.1f')} truth {_fmt(r.truth_start.time_s, '.1f')} s"
         + (f" | {r.failure}" if r.failure else "")

@@ -156,6 +156,11 @@ class MechanismRecord:
     translation_rms: float = math.nan
     sigma_detector_px: float = math.nan  # corner noise against the true projections (RMS per axis)
     sigma_posterior_px: float = math.nan  # a-posteriori sigma of the truth start
+    # (SS at the true parameters - SS at the truth start's minimum) / sigma_posterior^2: ~ chi2(truth_excess_dof)
+    # when the detected corners are unbiased; far beyond it, the data disagree with the ground truth
+    # (renderer / detector bias), which no estimator can fix
+    truth_excess_chi2: float = math.nan
+    truth_excess_dof: int = 0
     crb_rotation_rms: float = math.nan  # with sigma_detector_px
     crb_translation_rms: float = math.nan
     crb_posterior_rotation_rms: float = math.nan  # with sigma_posterior_px
@@ -210,9 +215,12 @@ def with_joints(data: CalibrationDataset, thetas: FloatArray) -> CalibrationData
     return replace(data, snapshots=[replace(s, joints=t) for s, t in zip(data.snapshots, thetas, strict=True)])
 
 
-def detector_sigma(data: CalibrationDataset, truth: GimbalCalibration, thetas: FloatArray, T_st: FloatArray) -> float:
-    """RMS per axis (px) of the detected corners minus their true projections in both cameras
-    (``T_st``: true target -> static camera poses, ``T_ds(thetas)`` the true static -> dynamic)."""
+def truth_residuals(
+    data: CalibrationDataset, truth: GimbalCalibration, thetas: FloatArray, T_st: FloatArray
+) -> tuple[float, int]:
+    """Sum of squares (px^2) and number of values (2 per corner) of the detected corners minus their
+    true projections in both cameras (``T_st``: true target -> static camera poses, ``T_ds(thetas)``
+    the true static -> dynamic transforms)."""
     sq, n = 0.0, 0
     for s, th, T in zip(data.snapshots, thetas, T_st, strict=True):
         for obs, cam, T_ct in ((s.static, data.static_camera, T), (s.dynamic, data.dynamic_camera, truth.T_ds(th) @ T)):
@@ -222,7 +230,7 @@ def detector_sigma(data: CalibrationDataset, truth: GimbalCalibration, thetas: F
             uv, _ = cam.project(p, jacobian=False)
             sq += float(np.sum((obs.pixels - uv) ** 2))
             n += 2 * len(obs.ids)
-    return math.sqrt(sq / n) if n else math.nan
+    return sq, n
 
 
 def _run(fn: Any, data: CalibrationDataset, out: RunOutcome, health: bool) -> CalibrationResult | None:
@@ -322,9 +330,14 @@ def _study(rec: MechanismRecord, work_dir: Path, opt: CalibrationOptions) -> Non
             )
         if rec.auto.healthy is False:
             causes.append("unhealthy: " + " | ".join(rec.auto.health_failures))
-    rec.sigma_detector_px = detector_sigma(data, truth, thetas_true, T_st_true)
+    ss_truth, n_values = truth_residuals(data, truth, thetas_true, T_st_true)
+    rec.sigma_detector_px = math.sqrt(ss_truth / n_values) if n_values else math.nan
     if res_truth is not None:
         rec.sigma_posterior_px = float(res_truth.extra["solver"]["sigma"]) * math.sqrt(res_truth.variance_factor)
+        ss_min = sum(float(np.sum(r * r)) for r in res_truth.residuals_static + res_truth.residuals_dynamic)
+        rec.truth_excess_chi2 = (ss_truth - ss_min) / rec.sigma_posterior_px**2
+        K = rec.n_snapshots
+        rec.truth_excess_dof = 12 + 3 * L - int(res_truth.n_gauge_fixed) + K * L + 6 * K
     # the bound scales with sigma^2: one information matrix (sigma 1 px), two noise levels
     if np.isfinite(rec.sigma_detector_px) or np.isfinite(rec.sigma_posterior_px):
         crb = cramer_rao_bound(data, truth, thetas_true, T_st_true, 1.0)
