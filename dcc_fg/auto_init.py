@@ -60,7 +60,12 @@ SCREEN_ITERATIONS = 30  # L = 2: pose-level LM iterations of the short fit that 
 N_SCREEN_KEEP = 2  # L = 2: starts carried on to the full pose-level fit
 SCREEN_SNAPSHOTS = 100  # L = 2: at most this many snapshots rank the starts
 N_L3_STARTS = 24  # L = 3: random starts of the axis search
-N_L3_KEEP = 2  # L = 3: best axis-search minima carried on to the full pose-level fit
+N_L3_KEEP = 3  # L = 3: best axis-search minima carried on to the pose-level fit (and the corner-level solve)
+# Pose-level fits of the candidates stop early: the corner-level solve of dcc_fg.global_fit decides
+# between them (a full fit crept for 200 iterations along the flat directions of nearly degenerate
+# L = 3 mechanisms).
+CANDIDATE_MAX_ITERATIONS = 40
+CANDIDATE_REL_TOL = 1e-6
 
 
 def pnp_T_ds(data: CalibrationDataset) -> FloatArray:
@@ -375,9 +380,16 @@ class _ThreeJointProjection:
 def multistart_three_joints(
     T_ds: FloatArray, free: NDArray[np.bool_], n_starts: int = N_L3_STARTS, seed: int = 0
 ) -> tuple[FloatArray, FloatArray, float]:
+    """L = 3: the best of :func:`three_joint_candidates`. Returns (kin, joint angles (K, 3), fit RMS)."""
+    return three_joint_candidates(T_ds, free, n_starts, seed)[0]
+
+
+def three_joint_candidates(
+    T_ds: FloatArray, free: NDArray[np.bool_], n_starts: int = N_L3_STARTS, seed: int = 0
+) -> list[tuple[FloatArray, FloatArray, float]]:
     """L = 3: the 6-parameter axis search of :class:`_ThreeJointProjection` (Levenberg-Marquardt)
     from ``n_starts`` random axes and twists, then the full pose-level fit from its ``N_L3_KEEP``
-    best minima; the lowest fit RMS wins. Returns (kin, joint angles (K, 3), fit RMS)."""
+    best minima, lowest fit RMS first: [(kin, joint angles (K, 3), fit RMS)]."""
     proj = _ThreeJointProjection(T_ds)
     rng = np.random.default_rng(seed)
     minima: list[tuple[float, FloatArray, FloatArray, FloatArray]] = []
@@ -390,14 +402,13 @@ def multistart_three_joints(
         w1, b3 = _unit_offset(w1_0, sol.x[0:2]), _unit_offset(b3_0, sol.x[2:4])
         minima.append((float(np.mean(sol.fun**2)), w1, b3, sol.x[4:6]))
     minima.sort(key=lambda m: m[0])
-    best: tuple[FloatArray, FloatArray, float] | None = None
+    out = []
     for _, w1, b3, alphas in minima[:N_L3_KEEP]:
         kin0, th0 = proj.kin(w1, b3, alphas)
-        cand = pose_level_refine(kin0, 3, T_ds, th0, free, [2], True)
-        if best is None or cand[2] < best[2]:
-            best = cand
-    assert best is not None
-    return best
+        out.append(pose_level_refine(
+                kin0, 3, T_ds, th0, free, [2], True, max_iterations=CANDIDATE_MAX_ITERATIONS, rel_tol=CANDIDATE_REL_TOL
+            ))
+    return sorted(out, key=lambda c: c[2])
 
 
 def _axes_of(kin: FloatArray, T_ds: FloatArray) -> tuple[FloatArray, FloatArray, float]:
@@ -409,9 +420,14 @@ def _axes_of(kin: FloatArray, T_ds: FloatArray) -> tuple[FloatArray, FloatArray,
 
 
 def _two_joint_candidates(T: FloatArray, free: NDArray[np.bool_]) -> tuple[FloatArray, FloatArray, float]:
+    """L = 2: the best of :func:`two_joint_candidates`."""
+    return two_joint_candidates(T, free)[0]
+
+
+def two_joint_candidates(T: FloatArray, free: NDArray[np.bool_]) -> list[tuple[FloatArray, FloatArray, float]]:
     """L = 2: the closed form from each start of :func:`_two_joint_axis_candidates`, a short
     pose-level fit of each (``SCREEN_ITERATIONS``), then the full fit of the ``N_SCREEN_KEEP`` best;
-    the lowest fit RMS wins.
+    lowest fit RMS first.
 
     (A short fit does not rank the two basins reliably, since both can still be descending a flat
     valley, so more than one is carried to the full fit. Over 250 random geometries of
@@ -431,18 +447,40 @@ def _two_joint_candidates(T: FloatArray, free: NDArray[np.bool_]) -> tuple[Float
         kin0, th0 = closed_form_low_dof(T_sub, 2, axes)
         screened.append(pose_level_refine(kin0, 2, T_sub, th0, free, [1], True, max_iterations=SCREEN_ITERATIONS))
     screened.sort(key=lambda c: c[2])
-    fits = [pose_level_refine(k, 2, T_sub, th, free, [1], True) for k, th, _ in screened[:N_SCREEN_KEEP]]
-    best = min(fits, key=lambda c: c[2])
+    fits = sorted(
+        (pose_level_refine(k, 2, T_sub, th, free, [1], True) for k, th, _ in screened[:N_SCREEN_KEEP]),
+        key=lambda c: c[2],
+    )
     if sub.size == K:
-        return best
-    kin0, th0 = closed_form_low_dof(T, 2, _axes_of(best[0], T))
-    return pose_level_refine(kin0, 2, T, th0, free, [1], True)
+        return fits
+    out = []
+    for fit in fits:
+        kin0, th0 = closed_form_low_dof(T, 2, _axes_of(fit[0], T))
+        out.append(pose_level_refine(kin0, 2, T, th0, free, [1], True))
+    return sorted(out, key=lambda c: c[2])
 
 
 def auto_initialize(
     data: CalibrationDataset, n_joints: int, T_ds: FloatArray | None = None
 ) -> tuple[GimbalCalibration, FloatArray, float]:
-    """Initial kinematics and joint angles with no gimbal.yaml.
+    """Initial kinematics and joint angles with no gimbal.yaml: the best of :func:`auto_initial_candidates`.
+
+    Returns:
+        (initial calibration, joint angles (K, L) in rad, whitened RMS of the pose-level fit with
+        1 mrad / 1 mm per unit). The gauge-fixed entries (module docstring) define the gauge the
+        calibration keeps.
+    """
+    return auto_initial_candidates(data, n_joints, T_ds)[0]
+
+
+def auto_initial_candidates(
+    data: CalibrationDataset, n_joints: int, T_ds: FloatArray | None = None
+) -> list[tuple[GimbalCalibration, FloatArray, float]]:
+    """Distinct starting points of the calibration with no gimbal.yaml, best pose-level fit first.
+
+    L = 0, 1: one (closed form); L = 2: the ``N_SCREEN_KEEP`` fits of the axis-plane starts; L = 3:
+    the ``N_L3_KEEP`` best minima of the axis search. :func:`dcc_fg.global_fit.calibrate_global`
+    solves the corner-level problem from each and keeps the lowest cost.
 
     Args:
         data: the calibration snapshots (snapshot ``joints`` are ignored).
@@ -450,9 +488,8 @@ def auto_initialize(
         T_ds: per-snapshot PnP ``T_ds`` (K, 4, 4) when already computed.
 
     Returns:
-        (initial calibration, joint angles (K, L) in rad, whitened RMS of the pose-level fit with
-        1 mrad / 1 mm per unit). The gauge-fixed entries (module docstring) define the gauge the
-        calibration keeps.
+        [(initial calibration, joint angles (K, L) in rad, whitened RMS of the pose-level fit with
+        1 mrad / 1 mm per unit)], lowest RMS first.
     """
     if n_joints < 0 or n_joints > 3:
         raise ValueError(f"automatic initialization supports 0 to 3 joints, got --joints {n_joints}")
@@ -467,16 +504,16 @@ def auto_initialize(
     cams = {"static_camera": data.static_camera, "dynamic_camera": data.dynamic_camera}
     if n_joints == 0:
         kin = np.concatenate([np.zeros(6), chain.tau_from_se3(mean_pose(T))])
-        return GimbalCalibration(kin, 0, **cams), np.zeros((K, 0)), float("nan")
+        return [(GimbalCalibration(kin, 0, **cams), np.zeros((K, 0)), float("nan"))]
     free = np.ones(chain.n_kin(n_joints), dtype=bool)
     last = 12 + 3 * (n_joints - 1)
     free[[2, 5, last, last + 1, last + 2]] = False
     with stage("automatic initialization", hint="give hand-measured initial kinematics (--gimbal G.yaml)"):
         if n_joints == 1:
             kin0, th0 = closed_form_low_dof(T, 1)
-            kin, th, rms = pose_level_refine(kin0, 1, T, th0, free, [0], True)
+            fits = [pose_level_refine(kin0, 1, T, th0, free, [0], True)]
         elif n_joints == 2:
-            kin, th, rms = _two_joint_candidates(T, free)
+            fits = two_joint_candidates(T, free)
         else:
-            kin, th, rms = multistart_three_joints(T, free)
-    return GimbalCalibration(kin, n_joints, **cams), th, rms
+            fits = three_joint_candidates(T, free)
+    return [(GimbalCalibration(kin, n_joints, **cams), th, rms) for kin, th, rms in fits]

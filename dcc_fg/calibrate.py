@@ -26,12 +26,13 @@ initial values, which removes exactly the unobservable directions:
 
 The observability report is computed independently of these rules, from the eigenvectors of the
 information matrix of the *full* parameterization (Schur complement onto the kinematics); a
-parameter is observable when it has no component along the null space. The solver refuses to
-start when the data leave more directions unobservable than the gauge (for example a joint that
-never moves), naming the parameters involved.
+parameter is observable when it has no component along the null space. Directions the data leave
+undetermined beyond the gauge (a mechanism whose axes intersect) are held by weak priors and
+reported (:mod:`dcc_fg.degeneracy`); a joint whose given angles never move is refused, naming the
+parameters involved.
 
 The steps of :func:`calibrate`: initial values (:func:`initial_problem`: PnP, joint angles,
-joint-motion check, pose-level fit), the data check against the gauge (:func:`refuse_unobservable`),
+joint-motion check, pose-level fit), the data check against the gauge (:func:`hold_degenerate_directions`),
 the graph and its solve (:mod:`dcc_fg.calibration_graph`), residual statistics, observability and
 covariances at the solution (:mod:`dcc_fg.covariance`), and the result.
 """
@@ -60,6 +61,7 @@ from dcc_fg.calibration_graph import (
 from dcc_fg.covariance import (
     COVARIANCE_UNAVAILABLE,
     Covariances,
+    dense_covariances,
     graph_marginals,
     information_schur,
     marginal_covariances,
@@ -67,6 +69,7 @@ from dcc_fg.covariance import (
     observable_mask,
 )
 from dcc_fg.data import CalibrationDataset
+from dcc_fg.degeneracy import NOMINALS, HeldDirections, held_directions
 from dcc_fg.init import joint_angles_from_T_ds, pnp_pose, robust_pose_level_init, zero_joint_init
 from dcc_fg.joint_motion import FLAT_JOINT_SPAN_RAD, check_joint_motion, never_moves
 from dcc_fg.model import GimbalCalibration
@@ -76,6 +79,13 @@ from factors.calibration import RobustLoss, SnapshotMeasurements
 
 FloatArray = NDArray[np.float64]
 MODES = ("encoderless", "encoders", "validate")
+# The pose-level fit only starts the corner-level solve, which converges from anywhere in the basin: a
+# relative cost decrease of 1e-6 or 40 iterations stop it. Along the flat directions of a nearly
+# degenerate L = 3 mechanism it crept for 200 iterations (cost 313.7 after 2 of them, 308.6 after 115;
+# 29 of 33 s of a 40-snapshot calibration), while the corner-level solve, with the weak priors of
+# dcc_fg.degeneracy, converged in 7.
+POSE_LEVEL_REL_TOL = 1e-6
+POSE_LEVEL_MAX_ITERATIONS = 40
 FORMULATIONS = ("bundle", "two_way")
 
 
@@ -91,6 +101,8 @@ class CalibrationOptions:
         robust: None, ``huber`` or ``cauchy``; robust_k: its threshold in pixels.
         max_iterations: Levenberg-Marquardt iterations (see :func:`dcc_fg.calibration_graph.lm_params`).
         compute_covariance: compute Marginals, standard deviations and T_ds covariances.
+        nominal: None, or a nominal geometry held by priors (:mod:`dcc_fg.degeneracy`: ``intersecting``,
+            ``orthogonal``, ``yaw-roll-pitch``, ...), for users who know their gimbal.
     """
 
     mode: str = "encoderless"
@@ -100,8 +112,11 @@ class CalibrationOptions:
     robust_k: float = 2.0
     max_iterations: int = 500
     compute_covariance: bool = True
+    nominal: str | None = None
 
     def __post_init__(self) -> None:
+        if self.nominal is not None and self.nominal not in NOMINALS:
+            raise ValueError(f"nominal '{self.nominal}' is not one of {', '.join(NOMINALS)}")
         if self.mode not in MODES:
             raise ValueError(f"mode '{self.mode}' is not one of {', '.join(MODES)}")
         if self.formulation not in FORMULATIONS:
@@ -277,7 +292,8 @@ def initial_problem(
     with stage("pose-level initialization", hint="check the initial kinematics (--gimbal) or use --init auto"):
         if opt.mode != "validate" and L > 0:
             kin_start, thetas_fit, _ = robust_pose_level_init(
-                initial.kin, L, T_ds_pnp, thetas0, ~fixed, offsets, estimate_theta
+                initial.kin, L, T_ds_pnp, thetas0, ~fixed, offsets, estimate_theta, rel_tol=POSE_LEVEL_REL_TOL,
+                max_iterations=POSE_LEVEL_MAX_ITERATIONS,
             )
             if estimate_theta:
                 thetas0 = thetas_fit
@@ -301,26 +317,39 @@ def initial_problem(
     )
 
 
-def refuse_unobservable(problem: CalibrationProblem) -> None:
-    """Raise ValueError when the data leave more directions unobservable at the initial values than
-    the gauge fixes (information matrix of the full parameterization, :mod:`dcc_fg.covariance`)."""
+def hold_degenerate_directions(problem: CalibrationProblem, nominal: str | None = None) -> HeldDirections:
+    """The directions of the kinematics that the data leave undetermined beyond the gauge, at the
+    initial values, to be held by weak priors (:mod:`dcc_fg.degeneracy`; with ``nominal``, the
+    nominal-geometry priors too). A mechanism whose axes (nearly) intersect is calibrated this way.
+
+    Raises ValueError when such a direction comes from a joint whose given angles never move (a
+    recording problem, not a property of the mechanism: record more varied joint angles)."""
+    L = problem.n_joints
     if problem.mode == "validate":
-        return
+        return HeldDirections(np.zeros((0, 0)), np.zeros(0), np.zeros((0, 0)), np.zeros(0), [])
+    scale = np.zeros(len(problem.kin_start))
     with stage("observability check", hint="the data may not excite every joint; record more varied joint angles"):
         S0 = information_schur(
             problem.data,
             problem.kin_start,
-            problem.n_joints,
+            L,
             problem.thetas0,
             problem.T_st0,
             problem.mode,
             problem.formulation,
             problem.sigma,
             problem.pnp_points,
+            scale_out=scale,
         )
-        N0 = null_space(S0, rel_tol=1e-7)
-    if N0.shape[1] > problem.n_gauge:
-        raise ValueError(unobservable_message(problem, N0))
+        held = held_directions(S0, problem.kin_start, L, problem.fixed, problem.offsets, nominal, scale)
+    if held.count:
+        thetas = problem.thetas_given
+        flat = [j for j in range(L) if thetas.shape[0] and float(np.ptp(thetas[:, j])) < FLAT_JOINT_SPAN_RAD]
+        if flat:
+            N = np.zeros((len(problem.fixed), held.count))
+            N[~problem.fixed] = held.directions.T
+            raise ValueError(unobservable_message(problem, N))
+    return held
 
 
 def unobservable_message(problem: CalibrationProblem, N: FloatArray) -> str:
@@ -334,7 +363,7 @@ def unobservable_message(problem: CalibrationProblem, N: FloatArray) -> str:
         spread = float(np.ptp(thetas[:, j])) if thetas.shape[0] else 0.0
         if spread < FLAT_JOINT_SPAN_RAD:
             hints.append(never_moves(j, spread))
-    msg = f"{problem.data.source}: the data leave {N.shape[1]} unobservable directions, more than the gauge fixes"
+    msg = f"{problem.data.source}: the data leave {N.shape[1]} unobservable directions beyond the gauge"
     if hints:
         msg += "; " + "; ".join(hints)
     if moved:
@@ -346,7 +375,11 @@ def unobservable_message(problem: CalibrationProblem, N: FloatArray) -> str:
 
 
 def variance_factor_of(
-    problem: CalibrationProblem, res_s: list[FloatArray], res_d: list[FloatArray], sigma_given: bool
+    problem: CalibrationProblem,
+    res_s: list[FloatArray],
+    res_d: list[FloatArray],
+    sigma_given: bool,
+    n_held: int = 0,
 ) -> float:
     """A-posteriori variance factor: whitened sum of squares over the degrees of freedom (1 when the
     pixel sigma is given)."""
@@ -357,7 +390,7 @@ def variance_factor_of(
         + (K * L if problem.estimate_theta else 0)
         + (6 * K if problem.formulation == "bundle" else 0)
     )
-    n_unknowns -= len(problem.offsets)
+    n_unknowns -= len(problem.offsets) + n_held
     dof = max(n_obs - n_unknowns, 1)
     whitened_ss = sum(float(np.sum(r * r)) for r in res_s + res_d) / problem.sigma**2
     return 1.0 if sigma_given else whitened_ss / dof
@@ -371,6 +404,7 @@ def observability_at(
     if problem.mode == "validate":
         observable = initial.observable if initial.observable is not None else np.zeros(len(sol.kin), dtype=bool)
         return observable, 0
+    scale = np.zeros(len(sol.kin))
     with stage("observability at the solution"):
         S = information_schur(
             problem.data,
@@ -382,8 +416,9 @@ def observability_at(
             problem.formulation,
             problem.sigma,
             problem.pnp_points,
+            scale_out=scale,
         )
-        N = null_space(S)
+        N = null_space(S, scale=scale)
     observable = observable_mask(N)
     if problem.n_joints == 0:
         # A rigid pair: all of tau_s is the gauge, so with tau_s held, tau_d is T_ds itself
@@ -412,6 +447,10 @@ def covariances_at(
             pass  # reported in the note: the calibration itself is fine
     if marginals is not None:
         return marginal_covariances(marginals, problem, sol, observable, variance_factor)
+    if opt.compute_covariance:
+        dense = dense_covariances(graph, values, problem, sol, observable, variance_factor)
+        if dense is not None:
+            return dense
     out = Covariances(
         np.full(len(sol.kin), np.nan),
         np.full((problem.n_snapshots, problem.n_joints), np.nan),
@@ -450,13 +489,18 @@ def calibrate(
     check_dataset(data, L, opt.mode)
     t_start = time.perf_counter()
     problem = initial_problem(data, initial, opt)
-    refuse_unobservable(problem)
+    held = hold_degenerate_directions(problem, opt.nominal)
     graph, values = build_graph(problem)
+    if problem.kin_key is not None:
+        for factor in held.factors(problem.kin_key):
+            graph.add(factor)
     solved = solve_graph(graph, values, opt.max_iterations)
     sol = solution_arrays(problem, solved.values)
     res_s, res_d = pixel_residuals(problem, sol)
-    variance_factor = variance_factor_of(problem, res_s, res_d, opt.pixel_sigma is not None)
+    variance_factor = variance_factor_of(problem, res_s, res_d, opt.pixel_sigma is not None, held.count)
     observable, null_dim = observability_at(problem, sol, initial)
+    if held.count:  # parameters moved by a held direction are not determined by the data
+        observable[np.flatnonzero(~problem.fixed)[held.involved()]] = False
 
     cov = covariances_at(graph, solved.values, problem, sol, observable, variance_factor, initial, opt)
     validating = opt.mode == "validate"
@@ -468,6 +512,7 @@ def calibrate(
         kin_std=cov.kin_std,
         observable=observable,
         gauge_fixed=initial.gauge_fixed if validating else problem.fixed,
+        held_by_prior=initial.held_by_prior if validating else held.report(),
     )
     out = CalibrationResult(
         calibration=cal,
@@ -488,6 +533,11 @@ def calibrate(
         T_ds_covariances=cov.T_ds,
     )
     out.extra["covariance"] = cov.note
+    if held.count:
+        out.extra["held_by_prior"] = held.report()
+        out.extra["held_by_prior_text"] = held.plain_words()
+    if held.nominal:
+        out.extra["nominal"] = opt.nominal
     # for the health checks (dcc_fg.calibration_health): the per-image PnP poses of both cameras and
     # the solver's stopping state
     out.extra["pnp_T_st"], out.extra["pnp_T_dt"] = problem.T_st0, problem.T_dt0
@@ -516,4 +566,6 @@ def summary_statistics(res: CalibrationResult) -> dict[str, Any]:
         "null_space_dim": int(res.null_space_dim),
         "gauge_directions_fixed": int(res.n_gauge_fixed),
         "covariance": res.extra.get("covariance", "ok"),
+        "held_by_prior": len(res.extra.get("held_by_prior", [])),
+        "nominal": res.extra.get("nominal"),
     }

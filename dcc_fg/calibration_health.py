@@ -665,6 +665,43 @@ def pairing_stamp_check(reader_report: dict[str, Any] | None) -> HealthCheck | N
 # ------------------------------------------------------------------ all of them
 
 
+def determination_checks(result: CalibrationResult) -> list[HealthCheck]:
+    """Warnings about what the data did not decide: kinematic directions held by a weak prior
+    (:mod:`dcc_fg.degeneracy`) and another minimum that fits as well (:mod:`dcc_fg.global_fit`)."""
+    out = []
+    held = result.extra.get("held_by_prior") or []
+    if held:
+        out.append(
+            HealthCheck(
+                "determined.kinematics",
+                False,
+                result.extra.get("held_by_prior_text") or f"{len(held)} kinematic direction(s) held by a weak prior",
+                "per-snapshot T_ds are determined by the images; for the kinematics themselves give --nominal (if "
+                "the gimbal's geometry is known) or record wider joint ranges",
+                float(len(held)),
+                0.0,
+                severity="warning",
+            )
+        )
+    amb = (result.extra.get("global") or {}).get("ambiguity")
+    if amb:
+        out.append(
+            HealthCheck(
+                "determined.unique",
+                False,
+                f"another solution (start '{amb.get('start')}') fits the images as well (cost difference "
+                f"{amb['cost_difference_chi2']:.3g} < chi-square threshold {amb['threshold_chi2']:.3g}) and gives T_ds "
+                f"{amb['rotation_rms_rad'] * 1e3:.3g} mrad / {amb['translation_rms_m'] * 1e3:.3g} mm (RMS) apart; the "
+                "reported T_ds covariances include this difference",
+                "record more snapshots over wider joint ranges, or give --nominal for a gimbal of known geometry",
+                float(amb["rotation_rms_rad"]),
+                0.0,
+                severity="warning",
+            )
+        )
+    return out
+
+
 def calibration_health(
     result: CalibrationResult, data: CalibrationDataset, reader_report: dict[str, Any] | None = None
 ) -> HealthReport:
@@ -693,4 +730,5 @@ def calibration_health(
     stamps = pairing_stamp_check(reader_report)
     if stamps is not None:
         report.add(stamps)
+    report.extend(determination_checks(result))
     return report

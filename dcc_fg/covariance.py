@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import gtsam
 import numpy as np
-from gtsam.symbol_shorthand import J
+from gtsam.symbol_shorthand import J, X
 from numpy.typing import NDArray
 
 from dcc_fg.calibration_graph import CalibrationProblem, SolutionArrays, snapshot_measurements
@@ -26,6 +26,9 @@ from factors.calibration import KinLayout, bundle_residuals, two_way_residuals
 FloatArray = NDArray[np.float64]
 COVARIANCE_CHUNK = 200  # snapshots per joint-marginal call (dense block: (nk + 200 L)^2 doubles)
 COVARIANCE_UNAVAILABLE = "unavailable: the information matrix is too ill-conditioned for a Cholesky factorization"
+DENSE_LIMIT = 4000  # unknowns up to which the dense fallback of dense_covariances is used
+DENSE_REL_TOL = 1e-12  # scaled eigenvalues below this are dropped by the fallback's pseudo-inverse
+COVARIANCE_DENSE = "ok (scaled pseudo-inverse: the information matrix is too ill-conditioned for Cholesky)"
 
 
 # ------------------------------------------------------------------ observability
@@ -41,13 +44,27 @@ def information_schur(
     formulation: str,
     sigma: float,
     pnp: list[tuple[FloatArray, FloatArray]] | None = None,
+    scale_out: FloatArray | None = None,
 ) -> FloatArray:
     """Information matrix of the *full* kinematic vector (12 + 3L) after eliminating the
-    per-snapshot variables (joint angles when estimated, target poses in the bundle)."""
+    per-snapshot variables (joint angles when estimated, target poses in the bundle).
+
+    Per snapshot the kinematic Jacobian is projected onto the orthogonal complement of the local
+    variables' Jacobian (``J_k - Q Q^T J_k``, ``Q`` an orthonormal basis of ``J_x``), which equals the
+    Schur complement ``J_k^T J_k - H_xk^T H_xx^-1 H_xk`` in exact arithmetic but stays positive
+    semi-definite in floating point: where a kinematic direction is absorbed by the joint angles (a
+    gauge, or the axes of a spherical wrist) the subtraction would cancel ~1e8 against ~1e8.
+
+    ``scale_out``: when given (shape (12 + 3L,)), receives the square root of the diagonal of the
+    information *before* elimination (each parameter's information if everything else were known):
+    a scale for metres and radians that, unlike the diagonal of the result, does not vanish along
+    the directions the elimination removes.
+    """
     layout = KinLayout(np.asarray(kin, float), np.ones(chain.n_kin(n_joints), dtype=bool), n_joints)
     cams = (data.static_camera, data.dynamic_camera)
     n = chain.n_kin(n_joints)
     S = np.zeros((n, n))
+    diag = np.zeros(n)
     for i, s in enumerate(data.snapshots):
         meas = snapshot_measurements(data, s)
         if formulation == "bundle":
@@ -59,6 +76,7 @@ def information_schur(
             blocks = two_way_residuals(layout, kin, thetas[i], P_s, meas.z_dynamic, P_d, meas.z_static, cams, True)
             local = [1] if mode == "encoderless" else []
         Jk = np.concatenate([b[1][0].reshape(-1, n) for b in blocks]) / sigma
+        diag += np.einsum("ij,ij->j", Jk, Jk)
         if local:
             Jx = (
                 np.concatenate(
@@ -66,18 +84,19 @@ def information_schur(
                 )
                 / sigma
             )
-            Hxx = Jx.T @ Jx
-            Hxk = Jx.T @ Jk
-            S += Jk.T @ Jk - Hxk.T @ np.linalg.solve(Hxx, Hxk)
-        else:
-            S += Jk.T @ Jk
-    return S
+            Q = np.linalg.qr(Jx)[0]
+            Jk = Jk - Q @ (Q.T @ Jk)
+        S += Jk.T @ Jk
+    if scale_out is not None:
+        scale_out[:] = np.sqrt(diag)
+    return 0.5 * (S + S.T)
 
 
-def null_space(S: FloatArray, rel_tol: float = 1e-9) -> FloatArray:
+def null_space(S: FloatArray, rel_tol: float = 1e-9, scale: FloatArray | None = None) -> FloatArray:
     """Orthonormal basis (n, k) of the numerical null space of a PSD matrix, in parameter space
-    (Jacobi-scaled first so that metres and radians are treated alike)."""
-    d = np.sqrt(np.maximum(np.diag(S), 1e-300))
+    (scaled first so that metres and radians are treated alike: by ``scale``, e.g. the one
+    :func:`information_schur` returns, else by the square root of the diagonal of ``S``)."""
+    d = np.sqrt(np.maximum(np.diag(S), 1e-300)) if scale is None else np.maximum(np.asarray(scale, float), 1e-300)
     Sn = S / np.outer(d, d)
     w, V = np.linalg.eigh(Sn)
     N = V[:, w < rel_tol * w.max()]
@@ -166,3 +185,69 @@ def marginal_covariances(
                 Jf = np.concatenate(blocks_J, axis=1)
                 T_ds_cov[i] = Jf @ C @ Jf.T
     return Covariances(kin_std, theta_std, T_ds_cov, "ok")
+
+
+def dense_covariances(
+    graph: gtsam.NonlinearFactorGraph,
+    values: gtsam.Values,
+    problem: CalibrationProblem,
+    sol: SolutionArrays,
+    observable: NDArray[np.bool_],
+    variance_factor: float,
+) -> Covariances | None:
+    """Covariances from the dense information matrix of the linearized graph, for the problems whose
+    information is too ill-conditioned for GTSAM's Cholesky (nearly degenerate mechanisms: directions
+    whose information is a few 1e-8 of the largest). Jacobi-scaled, then a pseudo-inverse that drops
+    the directions below ``DENSE_REL_TOL`` (they leave every ``T_ds`` unchanged). None when the
+    problem has more than ``DENSE_LIMIT`` unknowns."""
+    K, L, fixed = problem.n_snapshots, problem.n_joints, problem.fixed
+    kin_key = problem.kin_key
+    keys: list[tuple[int, int]] = []
+    if kin_key is not None:
+        keys.append((kin_key, int((~fixed).sum())))
+    if problem.estimate_theta:
+        keys += [(J(i), L) for i in range(K)]
+    if problem.formulation == "bundle":
+        keys += [(X(i), 6) for i in range(K)]
+    n = sum(d for _, d in keys)
+    if n > DENSE_LIMIT or n == 0:
+        return None
+    ordering = gtsam.Ordering()
+    offsets = {}
+    at = 0
+    for key, dim in keys:
+        ordering.push_back(key)
+        offsets[key] = (at, dim)
+        at += dim
+    with stage("marginal covariances", hint=COVARIANCE_HINT):
+        H = graph.linearize(values).hessian(ordering)[0]
+        d = np.sqrt(np.maximum(np.diag(H), 1e-300))
+        w, V = np.linalg.eigh(H / np.outer(d, d))
+        keep = w > DENSE_REL_TOL * w.max()
+        C = ((V[:, keep] / w[keep]) @ V[:, keep].T) / np.outer(d, d) * variance_factor
+
+    def block(a: int, b: int) -> FloatArray:
+        (ia, da), (ib, db) = offsets[a], offsets[b]
+        return C[ia : ia + da, ib : ib + db]
+
+    kin_std = np.full(len(sol.kin), np.nan)
+    theta_std = np.full((K, L), np.nan)
+    T_ds_cov = np.zeros((K, 6, 6))
+    if kin_key is not None:
+        kin_std[~fixed] = np.sqrt(np.maximum(np.diag(block(kin_key, kin_key)), 0.0))
+    kin_std[~observable] = np.nan
+    for i in range(K):
+        Jk, Jt = chain.d_T_ds_tangent(sol.kin, sol.thetas[i], L)
+        ks, Js = [], []
+        if kin_key is not None:
+            ks.append(kin_key)
+            Js.append(Jk[:, ~fixed])
+        if problem.estimate_theta:
+            ks.append(J(i))
+            Js.append(Jt)
+            theta_std[i] = np.sqrt(np.maximum(np.diag(block(J(i), J(i))), 0.0))
+        if ks:
+            Cb = np.block([[block(a, b) for b in ks] for a in ks])
+            Jf = np.concatenate(Js, axis=1)
+            T_ds_cov[i] = Jf @ Cb @ Jf.T
+    return Covariances(kin_std, theta_std, T_ds_cov, COVARIANCE_DENSE)

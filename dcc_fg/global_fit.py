@@ -1,18 +1,144 @@
-"""Global strategy of the encoderless calibration (issue 14): several starts, keep the best minimum.
+"""Global strategy of the encoderless calibration: several starts, the lowest cost wins, ambiguity reported.
 
-Stub: one start from the automatic initialization (or from ``initial``). The full strategy
-(multi-start over the auto-init's distinct minima, comparison of final costs, ambiguity report)
-replaces this body; the signature stays.
+The corner-level problem has local minima, most of them from the discrete ambiguities of the axis
+fit (which joint's axis is which, the branch of a twist) and, for L = 3, from the flat valleys of
+mechanisms whose axes nearly intersect. :func:`calibrate_global` therefore solves the complete
+problem (:func:`dcc_fg.calibrate.calibrate`) from every distinct start it has:
+
+* the hand-measured kinematics (``--gimbal``), when given;
+* each of the automatic initialization's distinct pose-level minima
+  (:func:`dcc_fg.auto_init.auto_initial_candidates`: one for L <= 1, the axis-plane fits for L = 2,
+  the best axis-search minima for L = 3);
+
+and keeps the solution with the lowest *data* cost (pixel residuals only: the weak priors of
+:mod:`dcc_fg.degeneracy` sit at each start's own values, so they do not take part in the
+comparison).
+
+Uniqueness. Another solution whose data cost is within the chi-square threshold of the best one,
+``2 (c_j - c_best) / s^2 < chi2_0.95(p)`` (``s^2`` the a-posteriori variance factor, ``p`` the
+number of kinematic parameters the data determine), fits the images as well. When its per-snapshot
+``T_ds`` differs from the best one by more than the reported uncertainty, the data do not decide
+between the two: the result carries ``extra["global"]["ambiguity"]`` (both solutions' ``T_ds``
+difference, rad and m) and every snapshot's reported ``T_ds`` covariance gets the outer product of
+that difference added, so the 1-sigma a user reads is never smaller than the ambiguity.
 """
 
 from __future__ import annotations
 
-from dataclasses import replace
+from dataclasses import dataclass, replace
+from typing import Any
 
-from dcc_fg.auto_init import auto_initialize
+import gtsam
+import numpy as np
+from numpy.typing import NDArray
+from scipy.stats import chi2
+
+from dcc_fg.auto_init import auto_initial_candidates
 from dcc_fg.calibrate import CalibrationOptions, CalibrationResult, calibrate
 from dcc_fg.data import CalibrationDataset
 from dcc_fg.model import GimbalCalibration
+from dcc_fg.util.errors import EstimatorError
+
+FloatArray = NDArray[np.float64]
+AMBIGUITY_PROBABILITY = 0.95  # chi-square quantile of "fits as well"
+AMBIGUITY_NEES = 12.59  # chi2_0.95(6): a T_ds difference beyond this (Mahalanobis^2) is a different answer
+
+
+@dataclass
+class Start:
+    """One start of the global strategy: its name, kinematics and the data with its joint-angle guesses."""
+
+    name: str
+    initial: GimbalCalibration
+    data: CalibrationDataset
+    pose_level_rms: float = float("nan")
+
+
+def data_cost(result: CalibrationResult) -> float:
+    """0.5 * sum of the whitened squared pixel residuals (no priors, no robust loss): GTSAM's error
+    of the data factors alone, in the units of ``final_error``."""
+    sigma = float(result.extra.get("solver", {}).get("sigma", 1.0))
+    ss = sum(float(np.sum(r * r)) for r in result.residuals_static + result.residuals_dynamic)
+    return 0.5 * ss / sigma**2
+
+
+def T_ds_differences(a: CalibrationResult, b: CalibrationResult) -> FloatArray:
+    """(K, 6) ``Log(T_ds_a^-1 T_ds_b)`` per snapshot, [omega rad, v m] (gtsam Pose3 local coordinates)."""
+    return np.array(
+        [
+            gtsam.Pose3(a.T_ds(i)).localCoordinates(gtsam.Pose3(b.T_ds(i)))
+            for i in range(len(a.timestamps_ns))
+        ]
+    )
+
+
+def starts_of(
+    data: CalibrationDataset,
+    n_joints: int,
+    mode: str,
+    initial: GimbalCalibration | None,
+    automatic: bool,
+    report: list[dict[str, Any]],
+) -> list[Start]:
+    """The starts: ``initial`` (with the snapshots' own joint guesses), then the automatic candidates
+    (with their joint angles as the guesses, except in ``encoders`` mode). When ``initial`` is given,
+    a failure of the automatic initialization (e.g. images in which a joint never moves) is recorded
+    in ``report`` and the search goes on from ``initial`` alone."""
+    starts = []
+    if initial is not None:
+        starts.append(Start("gimbal.yaml", initial, data))
+    if automatic:
+        try:
+            candidates = auto_initial_candidates(data, n_joints)
+        except (EstimatorError, ValueError) as exc:
+            if initial is None:
+                raise
+            report.append({"start": "automatic", "error": str(exc)})
+            candidates = []
+        for k, (cal, thetas, rms) in enumerate(candidates):
+            d = data
+            if mode != "encoders":
+                d = replace(data, snapshots=[replace(s, joints=t) for s, t in zip(data.snapshots, thetas, strict=True)])
+            starts.append(Start(f"automatic {k + 1}", cal, d, float(rms)))
+    return starts
+
+
+def _determined_parameters(result: CalibrationResult) -> int:
+    obs = result.calibration.observable
+    fixed = result.calibration.gauge_fixed
+    if obs is None:
+        return 1
+    free = ~fixed if fixed is not None else np.ones_like(obs)
+    return max(int(np.sum(obs & free)), 1)
+
+
+def ambiguity_of(best: CalibrationResult, other: CalibrationResult) -> dict[str, Any] | None:
+    """The ambiguity between two solutions (module docstring), or None when ``other`` fits clearly
+    worse or gives the same ``T_ds`` within the best one's reported uncertainty."""
+    vf = max(float(best.variance_factor), 1e-12)
+    p = _determined_parameters(best)
+    delta = 2.0 * (data_cost(other) - data_cost(best)) / vf
+    threshold = float(chi2.ppf(AMBIGUITY_PROBABILITY, p))
+    if delta > threshold:
+        return None
+    diff = T_ds_differences(best, other)
+    if best.T_ds_covariances is not None:
+        covs = best.T_ds_covariances
+        m2 = np.array([e @ np.linalg.lstsq(P, e, rcond=None)[0] for e, P in zip(diff, covs, strict=True)])
+        if float(np.max(m2)) < AMBIGUITY_NEES:
+            return None
+    else:
+        m2 = np.full(len(diff), np.nan)
+    return {
+        "cost_difference_chi2": float(delta),
+        "threshold_chi2": threshold,
+        "rotation_rms_rad": float(np.sqrt(np.mean(np.sum(diff[:, :3] ** 2, axis=1)))),
+        "translation_rms_m": float(np.sqrt(np.mean(np.sum(diff[:, 3:] ** 2, axis=1)))),
+        "rotation_max_rad": float(np.max(np.linalg.norm(diff[:, :3], axis=1))),
+        "translation_max_m": float(np.max(np.linalg.norm(diff[:, 3:], axis=1))),
+        "max_mahalanobis2": float(np.nanmax(m2)) if np.any(np.isfinite(m2)) else float("nan"),
+        "_diff": diff,
+    }
 
 
 def calibrate_global(
@@ -20,22 +146,77 @@ def calibrate_global(
     n_joints: int,
     options: CalibrationOptions | None = None,
     initial: GimbalCalibration | None = None,
+    automatic: bool = True,
 ) -> CalibrationResult:
-    """Encoderless (or encoders) calibration that searches for the global minimum.
+    """Calibration that searches for the global minimum (module docstring).
 
     Args:
         data: the snapshots (``joints`` are guesses in encoderless mode, readings with encoders).
         n_joints: L.
-        options: solver options.
-        initial: hand-measured kinematics (``--gimbal``), used as one more start; None: automatic only.
+        options: solver options (mode ``encoderless`` or ``encoders``).
+        initial: hand-measured kinematics (``--gimbal``), one more start; None: automatic starts only.
+        automatic: add the automatic initialization's starts (always, when ``initial`` is None).
 
     Returns:
-        the result of the start with the lowest final cost; ``extra["global"]`` describes the starts.
+        the solution with the lowest data cost; ``extra["global"]`` lists every start (name,
+        pose-level RMS, final data cost, iterations, or its error) and the ambiguity, if any.
+
+    Raises:
+        the first start's error when every start fails.
     """
     opt = options or CalibrationOptions()
-    if initial is not None:
-        return calibrate(data, initial, opt)
-    cal0, thetas, _ = auto_initialize(data, n_joints)
-    if opt.mode != "encoders":
-        data = replace(data, snapshots=[replace(s, joints=t) for s, t in zip(data.snapshots, thetas, strict=True)])
-    return calibrate(data, cal0, opt)
+    if opt.mode == "validate":
+        raise ValueError("calibrate_global calibrates; validate with dcc_fg.calibrate.calibrate(mode='validate')")
+    report: list[dict[str, Any]] = []
+    starts = starts_of(data, n_joints, opt.mode, initial, automatic or initial is None, report)
+    results: list[tuple[Start, CalibrationResult]] = []
+    first_error: Exception | None = None
+    for start in starts:
+        try:
+            res = calibrate(start.data, start.initial, opt)
+        except (EstimatorError, ValueError) as exc:
+            first_error = first_error or exc
+            report.append({"start": start.name, "pose_level_rms": start.pose_level_rms, "error": str(exc)})
+            continue
+        results.append((start, res))
+        report.append(
+            {
+                "start": start.name,
+                "pose_level_rms": start.pose_level_rms,
+                "data_cost": data_cost(res),
+                "final_error": float(res.final_error),
+                "iterations": int(res.iterations),
+                "time_s": float(res.solve_time_s),
+            }
+        )
+    if not results:
+        assert first_error is not None
+        raise first_error
+    best_start, best = min(results, key=lambda sr: data_cost(sr[1]))
+    ambiguities = []
+    for start, res in results:
+        if res is best:
+            continue
+        amb = ambiguity_of(best, res)
+        if amb is not None:
+            amb["start"] = start.name
+            ambiguities.append(amb)
+    worst = max(ambiguities, key=lambda a: a["rotation_rms_rad"] + a["translation_rms_m"], default=None)
+    if worst is not None and best.T_ds_covariances is not None:
+        diff = worst["_diff"]
+        best.T_ds_covariances = best.T_ds_covariances + np.einsum("ki,kj->kij", diff, diff)
+    for amb in ambiguities:
+        amb.pop("_diff")
+    best.extra["global"] = {
+        "starts": report,
+        "chosen": best_start.name,
+        "ambiguity": worst,
+        "ambiguous_solutions": len(ambiguities),
+    }
+    best.calibration.statistics["global"] = {
+        "starts": len(starts),
+        "solved": len(results),
+        "chosen": best_start.name,
+        "ambiguous": worst is not None,
+    }
+    return best

@@ -287,14 +287,22 @@ def robust_pose_level_init(
     estimate_theta: bool,
     restarts: int = 16,
     good_rms: float = 5.0,
+    rel_tol: float = 1e-12,
+    max_iterations: int = 200,
 ) -> tuple[FloatArray, FloatArray, float]:
     """:func:`pose_level_refine` with deterministic restarts.
 
     A fit is accepted when its whitened RMS (1 mrad / 1 mm per unit) is below ``good_rms``
     (PnP noise alone gives ~1-3); otherwise the free kinematic entries are re-drawn around the
-    initial values (10 deg / 3 cm) and the best fit is kept.
+    initial values (10 deg / 3 cm) and the best fit is kept. ``rel_tol``, ``max_iterations``: see
+    :func:`pose_level_refine`.
     """
-    best = pose_level_refine(kin0, L, T_ds_pnp, thetas0, free, offsets, estimate_theta)
+
+    def fit(kin: FloatArray) -> tuple[FloatArray, FloatArray, float]:
+        limits = {"max_iterations": max_iterations, "rel_tol": rel_tol}
+        return pose_level_refine(kin, L, T_ds_pnp, thetas0, free, offsets, estimate_theta, **limits)  # type: ignore[arg-type]
+
+    best = fit(kin0)
     rng = np.random.default_rng(12345)
     is_angle = chain.kin_is_angle(L)
     for _ in range(restarts):
@@ -303,7 +311,7 @@ def robust_pose_level_init(
         kin_try = kin0.copy()
         noise = rng.normal(size=kin0.shape) * np.where(is_angle, np.deg2rad(10.0), 0.03)
         kin_try[free] += noise[free]
-        cand = pose_level_refine(kin_try, L, T_ds_pnp, thetas0, free, offsets, estimate_theta)
+        cand = fit(kin_try)
         if cand[2] < best[2]:
             best = cand
     return best

@@ -62,6 +62,8 @@ class GimbalCalibration:
         kin_std: 1-sigma of each entry of ``kin`` (NaN where not observable or gauge-fixed).
         observable: per entry of ``kin``, whether it is observable from images.
         gauge_fixed: per entry of ``kin``, whether it was held fixed to remove the gauge freedom.
+        held_by_prior: directions the data did not determine, held by a weak prior
+            (:meth:`dcc_fg.degeneracy.HeldDirections.report`: parameters, direction, held_at, prior_sigma).
         statistics: free-form results (reprojection errors, counts, ...).
     """
 
@@ -72,6 +74,7 @@ class GimbalCalibration:
     kin_std: FloatArray | None = None
     observable: NDArray[np.bool_] | None = None
     gauge_fixed: NDArray[np.bool_] | None = None
+    held_by_prior: list[dict[str, Any]] = field(default_factory=list)
     statistics: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
@@ -134,6 +137,8 @@ class GimbalCalibration:
             out["observable"] = {n: bool(o) for n, o in zip(self.names, self.observable, strict=True)}
         if self.gauge_fixed is not None:
             out["gauge_fixed"] = [n for n, g in zip(self.names, self.gauge_fixed, strict=True) if g]
+        if self.held_by_prior:
+            out["held_by_prior"] = plain(self.held_by_prior)
         if self.static_camera is not None:
             out["cam0"] = camera_to_dict(self.static_camera)
         if self.dynamic_camera is not None:
@@ -199,6 +204,13 @@ class GimbalCalibration:
                     f"{source}: gauge_fixed must be a list of parameter names ({', '.join(cal.names)}), got {fixed!r}"
                 )
             cal.gauge_fixed = np.array([k in fixed for k in cal.names])
+        if "held_by_prior" in d:
+            held = d["held_by_prior"] or []
+            if not isinstance(held, list) or not all(
+                isinstance(h, dict) and isinstance(h.get("parameters"), list) for h in held
+            ):
+                raise ValueError(f"{source}: held_by_prior must be a list of mappings with a 'parameters' list")
+            cal.held_by_prior = [dict(h) for h in held]
         if "cam0" in d:
             cal.static_camera = camera_from_dict(d["cam0"], source, "cam0")
         if "cam1" in d:

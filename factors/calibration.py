@@ -336,3 +336,19 @@ def mean_prior_factor(keys: list[int], component: int, value: float, sigma: floa
         return np.array([(np.mean([v[component] for v in vecs]) - value) / sigma])
 
     return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(1), keys, error)
+
+
+def linear_prior_factor(key: int, W: FloatArray, x0: FloatArray) -> gtsam.CustomFactor:
+    """Whitened linear prior ``r = W (x - x0)`` on a Vector variable ``x`` (``W``: (k, n), already
+    whitened, so the factor has a unit noise model; Jacobian ``W``). Holds the directions spanned by
+    the rows of ``W`` at ``x0`` (weak priors on degenerate directions, nominal-geometry priors)."""
+    W = np.atleast_2d(np.asarray(W, dtype=float))
+    x0 = np.asarray(x0, dtype=float).reshape(-1)
+
+    def error(this: gtsam.CustomFactor, values: gtsam.Values, H: list[FloatArray] | None) -> FloatArray:
+        x = values.atVector(key)
+        if H is not None:
+            H[0] = W.copy()
+        return W @ (x - x0)
+
+    return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(W.shape[0]), [key], error)

@@ -167,7 +167,7 @@ def test_estimator_failure_is_one_line_with_stage_and_hint(small, tmp_path, monk
         with stage("calibration solve", hint="give --gimbal with better initial values"):
             raise RuntimeError("Indeterminant linear system detected while working near variable 7")
 
-    monkeypatch.setattr(calibrate_command, "calibrate", failing)
+    monkeypatch.setattr(calibrate_command, "calibrate_global", failing)
     assert main(_calibrate_argv(small, tmp_path / "o")) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert err[-1].startswith("dcc-fg calibrate: error: calibration solve failed: Indeterminant linear system")
@@ -179,7 +179,7 @@ def test_unwrapped_numerical_failure_is_reported_too(small, tmp_path, monkeypatc
     def failing(*args, **kwargs):
         raise np.linalg.LinAlgError("Singular matrix")
 
-    monkeypatch.setattr(calibrate_command, "calibrate", failing)
+    monkeypatch.setattr(calibrate_command, "calibrate_global", failing)
     assert main(_calibrate_argv(small, tmp_path / "o")) == 2
     assert "calibrate failed in the estimator: Singular matrix (hint:" in capsys.readouterr().err
 
@@ -188,7 +188,7 @@ def test_programming_errors_are_not_relabelled(small, tmp_path, monkeypatch) -> 
     def buggy(*args, **kwargs):
         raise KeyError("a bug")
 
-    monkeypatch.setattr(calibrate_command, "calibrate", buggy)
+    monkeypatch.setattr(calibrate_command, "calibrate_global", buggy)
     with pytest.raises(KeyError):
         main(_calibrate_argv(small, tmp_path / "o"))
 

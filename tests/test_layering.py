@@ -34,6 +34,7 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
             "dcc_fg.init",
             "dcc_fg.auto_init",
             "dcc_fg.global_fit",
+            "dcc_fg.degeneracy",
             "dcc_fg.joint_motion",
             "dcc_fg.intrinsics",
             "dcc_fg.intrinsics_health",

@@ -95,6 +95,7 @@ class Pipeline:
         mp.setattr(calibrate_cmd, "initial_values", lambda inputs, init, mode, data: (self.sim.initial, data))
         mp.setattr(calibrate_cmd, "load_calibration", lambda path: self.sim.initial)
         mp.setattr(calibrate_cmd, "calibrate", lambda *a, **k: self.estimator(*a, **k))
+        mp.setattr(calibrate_cmd, "calibrate_global", lambda *a, **k: self.estimator(*a, **k))
         mp.setattr(calibrate_cmd, "calibration_health", lambda **kw: self.health)
 
         def figures(out: Path, *args: Any, **kwargs: Any) -> list[Path]:  # quick stand-ins for the real figures

@@ -15,18 +15,19 @@ from __future__ import annotations
 import argparse
 import io
 import json
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import yaml
 
-from dcc_fg.auto_init import auto_initialize
 from dcc_fg.calibrate import CalibrationOptions, CalibrationResult, calibrate
 from dcc_fg.calibration_health import calibration_health
 from dcc_fg.commands import common
 from dcc_fg.data import CalibrationDataset, common_corners
+from dcc_fg.degeneracy import NOMINALS
+from dcc_fg.global_fit import calibrate_global
 from dcc_fg.io.camchain import CamchainEntry
 from dcc_fg.io.output_set import OutputSet
 from dcc_fg.io.outputs import plain, write_text_atomic
@@ -67,14 +68,19 @@ class ReaderOptions:
 @dataclass
 class InitOptions:
     """Initial values: ``method`` ``gimbal`` (the ``--gimbal`` YAML) or ``auto`` (per-snapshot PnP;
-    needs ``joints``); None picks gimbal when a ``--gimbal`` file is given, else auto."""
+    needs ``joints``); None picks gimbal when a ``--gimbal`` file is given, else auto. ``search``:
+    ``global`` (default) also solves from every automatic start and keeps the lowest cost
+    (:mod:`dcc_fg.global_fit`); ``single`` solves from the ``--gimbal`` start alone."""
 
     method: str | None = None
     joints: int | None = None
+    search: str = "global"
 
     def __post_init__(self) -> None:
         if self.method not in (None, "auto", "gimbal"):
             raise ValueError(f"method must be auto or gimbal, got {self.method!r}")
+        if self.search not in ("global", "single"):
+            raise ValueError(f"search must be global or single, got {self.search!r}")
         if self.joints is not None and not 0 <= self.joints <= 6:
             raise ValueError(f"joints must be between 0 and 6, got {self.joints}")
 
@@ -265,10 +271,9 @@ def print_written(result: CalibrationResult, paths: list[Path], quiet: bool) -> 
 
 def initial_values(
     inputs: CalibrationInputs, init: InitOptions, mode: str, data: CalibrationDataset
-) -> tuple[GimbalCalibration, CalibrationDataset]:
-    """Initial kinematics from ``--gimbal`` (method ``gimbal``) or from the data (``auto``, the default
-    without ``--gimbal``; needs ``joints``). The automatic joint angles become the snapshots' starting
-    guesses (except in ``encoders`` mode, where the readings are kept)."""
+) -> tuple[GimbalCalibration | None, CalibrationDataset]:
+    """The ``--gimbal`` kinematics (method ``gimbal``), or None for the automatic starts (``auto``, the
+    default without ``--gimbal``; needs ``joints``), and the data."""
     method = init.method or ("gimbal" if inputs.gimbal else "auto")
     if method == "gimbal":
         if inputs.gimbal is None:
@@ -276,11 +281,18 @@ def initial_values(
         return load_calibration(inputs.gimbal), data
     if init.joints is None:
         raise ValueError("--joints L is required when no --gimbal G.yaml is given (automatic initialization)")
-    initial, thetas, _ = auto_initialize(data, int(init.joints))
-    if mode == "encoders":
-        return initial, data
-    snaps = [replace(s, joints=t) for s, t in zip(data.snapshots, thetas, strict=True)]
-    return initial, replace(data, snapshots=snaps)
+    return None, data
+
+
+def solve_calibration(
+    initial: GimbalCalibration | None, data: CalibrationDataset, init: InitOptions, solver: CalibrationOptions
+) -> CalibrationResult:
+    """The calibration from ``initial`` (None: automatic starts only) with the global strategy
+    (:func:`dcc_fg.global_fit.calibrate_global`; ``init.search == "single"``: from ``initial`` alone)."""
+    if initial is None:
+        assert init.joints is not None
+        return calibrate_global(data, int(init.joints), solver)
+    return calibrate_global(data, initial.n_joints, solver, initial=initial, automatic=init.search == "global")
 
 
 def run_calibrate(
@@ -302,7 +314,7 @@ def run_calibrate(
         report: dict[str, Any] = {}
         data = load_calibration_data(inputs, inputs.camchain, config.reader, progress, report)
         initial, data = initial_values(inputs, config.init, config.solver.mode, data)
-        result = calibrate(data, initial, config.solver)
+        result = solve_calibration(initial, data, config.init, config.solver)
         provenance = run_record("calibrate", inputs.paths(), config)
         paths = write_calibration_set(outputs, result, data, report, provenance, config)
     print_written(result, paths, quiet)
@@ -373,6 +385,13 @@ def add_solver_flags(c: argparse.ArgumentParser) -> None:
     opt(c, "--init", "init.method", choices=["auto", "gimbal"], help="initial values: 'gimbal' reads --gimbal; "
         "'auto' estimates axes, DH links, mounts and joint angles from per-snapshot PnP (needs --joints). Default: "
         "gimbal if --gimbal is given, else auto")  # fmt: skip
+    opt(c, "--search", "init.search", choices=["global", "single"], help="global (default): also solve from every "
+        "automatic start (distinct minima of the axis fit) and keep the lowest cost, reporting an ambiguity when "
+        "another solution fits as well; single: solve from --gimbal alone")  # fmt: skip
+    opt(c, "--nominal", "solver.nominal", choices=list(NOMINALS), help="hold the DH links near a nominal geometry "
+        "by priors: intersecting (link offsets 0 +- 5 mm), orthogonal (twists +-90 +- 2 deg), yaw-roll-pitch / "
+        "pan-tilt-roll / pan-tilt (both). Directions the data do not determine are always held by a weak prior "
+        "and reported (held_by_prior in calibration.yaml)")  # fmt: skip
     opt(c, "--mode", "solver.mode", choices=["encoderless", "encoders"],
         help="joint angles unknown (encoderless, default) or read from joints.csv / JointState (encoders)")  # fmt: skip
     opt(c, "--formulation", "solver.formulation", choices=["bundle", "two_way"],

@@ -32,7 +32,10 @@ The family:
   (``+-(90 + U(-5, 5))`` deg, random sign per joint), else every ``|alpha_l|`` is uniform in
   [20, 160] deg with a random sign (consecutive axes are never within 20 deg of parallel);
 * joint ranges: per joint a centre uniform in [-180, 180) deg and a half width uniform in
-  [8, 60] deg; ``ranges`` holds ``centre -+ half``, rad;
+  [8, 60] deg; ``ranges`` holds ``centre -+ half``, rad. For L = 3, joint 2's range keeps joints
+  1 and 3 at least ``WRIST_CLEARANCE_DEG`` (20 deg) from parallel (gimbal lock, where the joint
+  angles are not determined; commercial gimbals keep their range clear of it): its centre is
+  redrawn, and its half width narrowed by 10 % steps where no centre works;
 * base mount: ``R_bs`` uniformly random; the wrist point (intersecting axes) or the base origin
   (otherwise) at a uniformly random direction, 5-15 cm from the static camera centre;
 * dynamic camera: the mount ``tau_d`` puts the dynamic camera, with the joints at the range
@@ -141,6 +144,9 @@ class FamilyMember:
     scene: SceneConfig
     target_kind: str
     description: dict[str, Any]
+
+
+WRIST_CLEARANCE_DEG = 20.0  # L = 3: joints 1 and 3 stay this far from parallel (gimbal lock)
 
 
 def _random_rotation(rng: np.random.Generator) -> FloatArray:
@@ -304,6 +310,30 @@ def _distance_range(
     raise RuntimeError("no board distance fits both images at the range centre")
 
 
+def _axes_1_3_cosine(alphas: FloatArray, theta_2: FloatArray) -> FloatArray:
+    """cos of the angle between joint 1's and joint 3's axes at joint-2 angles ``theta_2`` (rad):
+    ``e_z . Rx(alpha_1) Rz(theta_2) Rx(alpha_2) e_z`` (joint 1's angle turns about its own axis)."""
+    a1, a2 = float(alphas[0]), float(alphas[1])
+    return -np.sin(a1) * np.cos(theta_2) * np.sin(a2) + np.cos(a1) * np.cos(a2)
+
+
+def _clear_of_wrist_singularity(
+    alphas: FloatArray, centre: float, half_deg: float, rng: np.random.Generator
+) -> tuple[float, float]:
+    """Joint 2's range centre (rad) and half width (deg) such that joints 1 and 3 stay at least
+    ``WRIST_CLEARANCE_DEG`` from parallel over the range (where they are parallel, a 3-axis gimbal
+    loses a degree of freedom: gimbal lock; real gimbals keep their range clear of it). The centre
+    is redrawn, and the half width narrowed when no centre works."""
+    limit = np.cos(np.deg2rad(WRIST_CLEARANCE_DEG))
+    for _ in range(200):
+        grid = centre + np.deg2rad(half_deg) * np.linspace(-1.0, 1.0, 41)
+        if np.max(np.abs(_axes_1_3_cosine(alphas, grid))) <= limit:
+            return centre, half_deg
+        centre = float(rng.uniform(-np.pi, np.pi))
+        half_deg = max(HALF_RANGE_DEG[0], 0.9 * half_deg)
+    raise RuntimeError(f"twists {np.rad2deg(alphas[:2])} deg leave joints 1 and 3 near parallel everywhere")
+
+
 def _camera_dict(cam: CameraModel, hfov_deg: float) -> dict[str, Any]:
     return {
         "model": cam.distortion_model,
@@ -352,6 +382,10 @@ def family_member(seed: int, n_joints: int | None = None, n_snapshots: int = 40)
     # joint ranges
     centre = rng.uniform(-np.pi, np.pi, size=L)
     half_deg = rng.uniform(*HALF_RANGE_DEG, size=L)
+    if L == 3:
+        centre[1], half_deg[1] = _clear_of_wrist_singularity(
+            dh[:, 2], centre[1], half_deg[1], np.random.default_rng([FAMILY_STREAM, seed, 3])
+        )
     ranges = np.column_stack([centre - half_deg * DEG, centre + half_deg * DEG])
 
     # base mount: wrist point (intersecting axes) or base origin 5-15 cm from the static camera
