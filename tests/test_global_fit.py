@@ -1,0 +1,82 @@
+"""The global strategy (dcc_fg.global_fit): every start solved, the lowest data cost kept, an
+equally good but different solution reported as an ambiguity and added to the T_ds covariances."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+import dcc_fg.global_fit as gf
+from dcc_fg.calibrate import CalibrationOptions, calibrate
+from dcc_fg.calibration_health import calibration_health
+from dcc_fg.global_fit import ambiguity_of, calibrate_global, data_cost
+from dcc_fg.sim.calibration_scene import SceneConfig, random_mechanism, simulate_calibration
+
+
+@pytest.fixture(scope="module")
+def two_joint():  # noqa: ANN201
+    sim = simulate_calibration(5, SceneConfig(n_calibration=20, n_validation=1), random_mechanism(
+        np.random.default_rng(5), 2))  # fmt: skip
+    return sim, calibrate_global(sim.calibration_set, 2, CalibrationOptions(), initial=sim.initial)
+
+
+def test_every_start_is_solved_and_the_lowest_cost_kept(two_joint) -> None:  # noqa: ANN001
+    sim, res = two_joint
+    g = res.extra["global"]
+    solved = [s for s in g["starts"] if "data_cost" in s]
+    assert g["starts"][0]["start"] == "gimbal.yaml" and len(solved) >= 2
+    assert data_cost(res) == pytest.approx(min(s["data_cost"] for s in solved), rel=1e-12)
+    assert res.calibration.statistics["global"]["solved"] == len(solved)
+    # the data cost is the pixel part of GTSAM's error (the gauge prior on the mean angle costs ~0)
+    assert data_cost(res) == pytest.approx(res.final_error, rel=1e-6)
+
+
+def test_a_different_solution_that_fits_as_well_is_an_ambiguity(two_joint) -> None:  # noqa: ANN001
+    sim, best = two_joint
+    assert ambiguity_of(best, best) is None  # the same solution: no ambiguity
+    # a solution with the same residuals (same cost) but joint angles 20 mrad away: T_ds differs by
+    # far more than its 1-sigma, so the data do not decide between the two
+    other = replace(best, joint_angles=best.joint_angles + 0.02)
+    amb = ambiguity_of(best, other)
+    assert amb is not None and amb["rotation_rms_rad"] > 0.01
+    assert amb["cost_difference_chi2"] == pytest.approx(0.0, abs=1e-9)
+    # a solution that fits clearly worse is not an ambiguity
+    worse = replace(best, residuals_static=[r * 1.5 for r in best.residuals_static])
+    assert ambiguity_of(best, replace(worse, joint_angles=other.joint_angles)) is None
+
+
+def test_an_ambiguous_result_reports_the_difference_in_its_covariance(monkeypatch) -> None:  # noqa: ANN001
+    """When two starts end equally well in different places, the returned T_ds covariance is at least
+    the outer product of their difference and the health report warns."""
+    sim = simulate_calibration(1, SceneConfig(n_calibration=15, n_validation=1))
+    real = gf.calibrate
+    calls = []
+
+    def shifted(data, initial, opt):  # noqa: ANN001, ANN202
+        res = real(data, initial, opt)
+        calls.append(res)
+        if len(calls) == 2:  # the second start "ends" 10 mrad of joint 1 away, with the same residuals
+            th = res.joint_angles.copy()
+            th[:, 0] += 0.01
+            res = replace(res, joint_angles=th, extra=dict(res.extra))
+        return res
+
+    monkeypatch.setattr(gf, "calibrate", shifted)
+    res = calibrate_global(sim.calibration_set, 2, CalibrationOptions(), initial=sim.initial)
+    amb = res.extra["global"]["ambiguity"]
+    assert amb is not None and amb["rotation_rms_rad"] > 0.005
+    P = res.T_ds_covariances
+    assert P is not None and np.all(np.sqrt(np.einsum("kii->ki", P)[:, :3]).max(axis=1) > 0.5 * amb["rotation_max_rad"])
+    health = calibration_health(res, sim.calibration_set)
+    assert any(w.name == "determined.unique" for w in health.warnings)
+
+
+def test_single_start_matches_plain_calibrate() -> None:
+    sim = simulate_calibration(2, SceneConfig(n_calibration=12, n_validation=1))
+    opt = CalibrationOptions(compute_covariance=False)
+    a = calibrate_global(sim.calibration_set, 2, opt, initial=sim.initial, automatic=False)
+    b = calibrate(sim.calibration_set, sim.initial, opt)
+    np.testing.assert_array_equal(a.joint_angles, b.joint_angles)
+    assert len(a.extra["global"]["starts"]) == 1
