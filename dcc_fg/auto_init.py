@@ -58,7 +58,7 @@ FloatArray = NDArray[np.float64]
 N_AXIS_STARTS = 4  # L = 2: starting joint-1 axes in the principal rotation plane
 SCREEN_ITERATIONS = 30  # L = 2: pose-level LM iterations of the short fit that ranks the starts
 N_SCREEN_KEEP = 2  # L = 2: starts carried on to the full pose-level fit
-SCREEN_SNAPSHOTS = 100  # L = 2: at most this many snapshots rank the starts
+SCREEN_SNAPSHOTS = 40  # L = 2: at most this many snapshots rank the starts (random-geometry study: 25 suffice)
 N_L3_STARTS = 24  # L = 3: random starts of the axis search
 N_L3_KEEP = 3  # L = 3: best axis-search minima carried on to the pose-level fit (and the corner-level solve)
 # Pose-level fits of the candidates stop early: the corner-level solve of dcc_fg.global_fit decides
@@ -66,6 +66,7 @@ N_L3_KEEP = 3  # L = 3: best axis-search minima carried on to the pose-level fit
 # L = 3 mechanisms).
 CANDIDATE_MAX_ITERATIONS = 40
 CANDIDATE_REL_TOL = 1e-6
+SAME_MINIMUM = 1e-4  # rad, m: candidates predicting the same T_ds this closely are one start
 
 
 def pnp_T_ds(data: CalibrationDataset) -> FloatArray:
@@ -447,8 +448,9 @@ def two_joint_candidates(T: FloatArray, free: NDArray[np.bool_]) -> list[tuple[F
         kin0, th0 = closed_form_low_dof(T_sub, 2, axes)
         screened.append(pose_level_refine(kin0, 2, T_sub, th0, free, [1], True, max_iterations=SCREEN_ITERATIONS))
     screened.sort(key=lambda c: c[2])
+    limits = {"max_iterations": CANDIDATE_MAX_ITERATIONS, "rel_tol": CANDIDATE_REL_TOL}
     fits = sorted(
-        (pose_level_refine(k, 2, T_sub, th, free, [1], True) for k, th, _ in screened[:N_SCREEN_KEEP]),
+        (pose_level_refine(k, 2, T_sub, th, free, [1], True, **limits) for k, th, _ in screened[:N_SCREEN_KEEP]),  # type: ignore[arg-type]
         key=lambda c: c[2],
     )
     if sub.size == K:
@@ -456,8 +458,25 @@ def two_joint_candidates(T: FloatArray, free: NDArray[np.bool_]) -> list[tuple[F
     out = []
     for fit in fits:
         kin0, th0 = closed_form_low_dof(T, 2, _axes_of(fit[0], T))
-        out.append(pose_level_refine(kin0, 2, T, th0, free, [1], True))
+        out.append(pose_level_refine(kin0, 2, T, th0, free, [1], True, **limits))  # type: ignore[arg-type]
     return sorted(out, key=lambda c: c[2])
+
+
+def distinct(
+    fits: list[tuple[FloatArray, FloatArray, float]], n_joints: int
+) -> list[tuple[FloatArray, FloatArray, float]]:
+    """The fits (lowest RMS first) without repeats: two starts whose chains predict the same ``T_ds``
+    for every snapshot (within ``SAME_MINIMUM`` rad and m) ended in the same pose-level minimum, also
+    when their parameters differ by a symmetry of the DH parameterization (e.g. an axis and its
+    negative with the angles' signs changed), and count once."""
+    out: list[tuple[FloatArray, FloatArray, float]] = []
+    predictions: list[FloatArray] = []
+    for kin, th, rms in sorted(fits, key=lambda c: c[2]):
+        T = np.array([chain.T_ds(kin, t, n_joints) for t in th])
+        if not any(np.max(np.abs(T[:, :3, :] - P[:, :3, :])) < SAME_MINIMUM for P in predictions):
+            out.append((kin, th, rms))
+            predictions.append(T)
+    return out
 
 
 def auto_initialize(
@@ -516,4 +535,4 @@ def auto_initial_candidates(
             fits = two_joint_candidates(T, free)
         else:
             fits = three_joint_candidates(T, free)
-    return [(GimbalCalibration(kin, n_joints, **cams), th, rms) for kin, th, rms in fits]
+    return [(GimbalCalibration(kin, n_joints, **cams), th, rms) for kin, th, rms in distinct(fits, n_joints)]
