@@ -25,6 +25,7 @@ that difference added, so the 1-sigma a user reads is never smaller than the amb
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -40,6 +41,7 @@ from dcc_fg.model import GimbalCalibration
 from dcc_fg.util.errors import EstimatorError
 
 FloatArray = NDArray[np.float64]
+log = logging.getLogger("dcc_fg.global_fit")
 AMBIGUITY_PROBABILITY = 0.95  # chi-square quantile of "fits as well"
 AMBIGUITY_NEES = 12.59  # chi2_0.95(6): a T_ds difference beyond this (Mahalanobis^2) is a different answer
 
@@ -207,6 +209,12 @@ def calibrate_global(
         best.T_ds_covariances = best.T_ds_covariances + np.einsum("ki,kj->kij", diff, diff)
     for amb in ambiguities:
         amb.pop("_diff")
+    if worst is not None:
+        log.warning(
+            "another solution (start %s) fits the images as well but gives T_ds %.3g mrad / %.3g mm (RMS) apart; "
+            "the reported T_ds covariances include the difference",
+            worst["start"], worst["rotation_rms_rad"] * 1e3, worst["translation_rms_m"] * 1e3,
+        )  # fmt: skip
     best.extra["global"] = {
         "starts": report,
         "chosen": best_start.name,
@@ -214,9 +222,9 @@ def calibrate_global(
         "ambiguous_solutions": len(ambiguities),
     }
     best.calibration.statistics["global"] = {
-        "starts": len(starts),
         "solved": len(results),
         "chosen": best_start.name,
-        "ambiguous": worst is not None,
+        "ambiguity": worst,
+        "starts": report,
     }
     return best

@@ -218,6 +218,24 @@ def run_summary_table(stats: dict[str, Any]) -> str:
             + (f"; held fixed to remove the gauge: {', '.join(fixed)}" if fixed else "")
             + (f"; estimated but gauge-dependent (no std): {', '.join(dep)}" if dep else "")
         )
+    glob = stats.get("global")
+    if glob:
+        costs = [f"{st['start']}: {st['data_cost']:.6g}" for st in glob.get("starts", []) if "data_cost" in st]
+        lines.append(f"global search: {glob['solved']} start(s) solved, kept {glob['chosen']} (pixel cost "
+                     + "; ".join(costs) + ")")  # fmt: skip
+        amb = glob.get("ambiguity")
+        if amb:
+            lines.append(
+                f"AMBIGUOUS: start {amb['start']} fits as well (chi-square difference "
+                f"{amb['cost_difference_chi2']:.3g} < {amb['threshold_chi2']:.3g}) with T_ds "
+                f"{amb['rotation_rms_rad'] * 1e3:.3g} mrad / "
+                f"{amb['translation_rms_m'] * 1e3:.3g} mm apart (included in the T_ds 1-sigma below)"
+            )
+    if stats.get("held_by_prior"):
+        lines.append(
+            f"held by a weak prior (not determined by the data): {stats['held_by_prior']} direction(s) of the "
+            "kinematics, see held_by_prior in calibration.yaml"
+        )
     tds = stats.get("T_ds_std")
     if tds:
         lines.append(
