@@ -114,7 +114,8 @@ def test_family_camera_corners_unbiased_at_large_radii(seed: int, camera: int) -
     """Noise-free renders of random-mechanism members put every checkerboard corner at its true projection.
 
     Member 2's static camera is equidistant (640x480, the family seeds whose calibrations were
-    3-8x the Cramer-Rao bound), member 3's dynamic one radtan (1280x720, the reference).  The
+    3-8x the Cramer-Rao bound: not the renderer, the detector's ``findChessboardCornersSB`` fallback,
+    whose corners are not refined), member 3's dynamic one radtan (1280x720, the reference).  The
     image saddle points are found with ``cornerSubPix`` started 0.5 px off the true projections
     (the renderer's check, without the detector's grid search).  On a noise-free 8-bit render the
     per-corner error is quantization and the refinement's own error (measured 0.024-0.027 px RMS
