@@ -143,6 +143,15 @@ def _square_parity_dark(gray: UInt8Array, grid: FloatArray) -> bool:
     return bool(np.nanmean(vals[even]) < np.nanmean(vals[~even]))
 
 
+def _refine_checkerboard(gray: UInt8Array, corners: NDArray[np.float32], target: TargetGeometry) -> NDArray[np.float32]:
+    """``cv2.cornerSubPix`` on checkerboard corners (N, 1, 2), half window 0.2 of the median square
+    side in pixels (2 to 11)."""
+    c = corners.reshape(target.rows, target.cols, 2)
+    side = float(np.median(np.linalg.norm(np.diff(c, axis=1), axis=2)))
+    win = int(min(11, max(2, round(0.2 * side))))
+    return cv2.cornerSubPix(gray, corners, (win, win), (-1, -1), _SUBPIX_CRITERIA)
+
+
 def detect_checkerboard(image: NDArray[np.generic], target: TargetGeometry) -> Observation:
     """Detect all inner corners of a chessboard.
 
@@ -162,14 +171,15 @@ def detect_checkerboard(image: NDArray[np.generic], target: TargetGeometry) -> O
     flags = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_FAST_CHECK
     ok, corners = cv2.findChessboardCorners(gray, size, flags=flags)
     if ok:
-        c = corners.reshape(target.rows, target.cols, 2)
-        side = float(np.median(np.linalg.norm(np.diff(c, axis=1), axis=2)))
-        win = int(min(11, max(2, round(0.2 * side))))
-        corners = cv2.cornerSubPix(gray, corners, (win, win), (-1, -1), _SUBPIX_CRITERIA)
+        corners = _refine_checkerboard(gray, corners, target)
     else:  # slower, more robust to blur and strong perspective
         ok, corners = cv2.findChessboardCornersSB(gray, size, flags=cv2.CALIB_CB_ACCURACY)
         if not ok:
             return Observation(np.zeros(0, dtype=np.int64), np.zeros((0, 2)))
+        # refined like the first detector's: its own corners carry a per-image bias of up to a few
+        # hundredths of a pixel (0.045 px RMS of the per-image mean error on 10-13 px squares of a
+        # rendered fisheye image, 0.008 px after cornerSubPix), which a calibration absorbs
+        corners = _refine_checkerboard(gray, corners.astype(np.float32), target)
     grid = corners.reshape(target.rows, target.cols, 2).astype(np.float64)
     # Handedness: seen from the front, the column direction turns clockwise (image v down) into
     # the row direction, i.e. the target z axis points into the board.  (OpenCV's detectors
