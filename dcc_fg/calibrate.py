@@ -79,13 +79,14 @@ from factors.calibration import RobustLoss, SnapshotMeasurements
 
 FloatArray = NDArray[np.float64]
 MODES = ("encoderless", "encoders", "validate")
-# The pose-level fit only starts the corner-level solve, which converges from anywhere in the basin: a
-# relative cost decrease of 1e-6 or 40 iterations stop it. Along the flat directions of a nearly
-# degenerate L = 3 mechanism it crept for 200 iterations (cost 313.7 after 2 of them, 308.6 after 115;
-# 29 of 33 s of a 40-snapshot calibration), while the corner-level solve, with the weak priors of
-# dcc_fg.degeneracy, converged in 7.
-POSE_LEVEL_REL_TOL = 1e-6
-POSE_LEVEL_MAX_ITERATIONS = 40
+# The pose-level fit that starts the corner-level solve runs to a relative cost decrease of 1e-12 or 200
+# iterations. Along the flat directions of a nearly degenerate L = 3 mechanism it creeps (cost 313.7
+# after 2 iterations, 308.6 after 115 on a spherical wrist), but stopping it early (1e-6 / 40) moved
+# where the corner-level solve of the pinned L = 3 scene stops in its own flat valley, enough to push
+# its joint-angle errors past the test's sampling bound; the automatic starts use the early stop
+# (dcc_fg.auto_init.CANDIDATE_MAX_ITERATIONS), since the global search compares their final costs.
+POSE_LEVEL_REL_TOL = 1e-12
+POSE_LEVEL_MAX_ITERATIONS = 200
 FORMULATIONS = ("bundle", "two_way")
 
 
