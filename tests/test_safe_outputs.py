@@ -15,7 +15,7 @@ import signal
 import subprocess
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -306,7 +306,18 @@ def test_ctrl_c_in_the_estimator(pipeline: Pipeline, inputs, tmp_path, capsys) -
     assert not fresh.exists()
 
 
-def test_ctrl_c_during_the_commit_is_deferred() -> None:
+@pytest.fixture
+def default_sigint() -> Iterator[None]:
+    """Python's default SIGINT handler for the test: a test run started in the background by a shell
+    without job control inherits SIGINT ignored, in which no Ctrl-C arrives at all."""
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
+def test_ctrl_c_during_the_commit_is_deferred(default_sigint: None) -> None:
     """A SIGINT inside DeferredInterrupt does not stop the block; KeyboardInterrupt comes at its end."""
     steps = []
     with pytest.raises(KeyboardInterrupt), DeferredInterrupt():
@@ -453,7 +464,10 @@ def test_real_ctrl_c_of_a_running_command(tmp_path: Path) -> None:
     if not script.is_file():
         pytest.skip(f"{script}: the dcc-fg command is not installed")
     argv = [str(script), "simulate", "flight", "--out", str(out), "--duration", "30", "--scale", "0.25", "-q"]
-    proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(  # SIGINT at its default even when this test run inherited it ignored
+        argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+    )  # fmt: skip
     deadline = time.monotonic() + 60
     while not any(output_set.STAGING_TAG in p.name for p in tmp_path.iterdir()):  # rendering has started
         assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
