@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import importlib.util
+import sys
 from pathlib import Path
+from types import ModuleType
 
 import pytest
 
@@ -10,6 +13,20 @@ from dcc_fg.calibrate import CalibrationOptions, CalibrationResult, calibrate
 from dcc_fg.sim.calibration_scene import SimulatedCalibration, simulate_calibration
 
 SHARED_DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
+BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
+
+
+def load_benchmark(name: str) -> ModuleType:
+    """The script ``benchmarks/<name>.py`` as a module (loaded once per process), so that a test runs
+    a fixed subset of the study the script runs in full."""
+    if name in sys.modules:
+        return sys.modules[name]
+    spec = importlib.util.spec_from_file_location(name, BENCHMARKS / f"{name}.py")
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module  # dataclasses resolve annotations through sys.modules
+    spec.loader.exec_module(module)
+    return module
 
 
 def shared_data(sub: str) -> Path:

@@ -7,13 +7,9 @@ start reaches the same optimum: per-snapshot T_ds errors within 1.5x of the refe
 
 from __future__ import annotations
 
-import importlib.util
-import sys
-from pathlib import Path
-from types import ModuleType
-
 import numpy as np
 import pytest
+from conftest import load_benchmark
 
 from dcc_fg import load_calibration
 from dcc_fg.auto_init import SCREEN_SNAPSHOTS, auto_initialize, pnp_T_ds, rotation_ik_three_joints
@@ -28,8 +24,6 @@ from dcc_fg.studies.calibration_accuracy import T_ds_errors
 from dcc_fg.targets import TargetGeometry
 from factors import chain
 
-BENCH = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_auto_init.py"
-
 FAST = CalibrationOptions(compute_covariance=False)
 # The study (50 random geometries, at least 48 must converge) is benchmarks/bench_auto_init.py;
 # CI runs this fixed subset of it. Geometry 1 is a degenerate draw (7 unobservable directions at the
@@ -39,16 +33,7 @@ SUBSET = range(9)
 REFUSED: set[int] = set()
 
 
-def _bench() -> ModuleType:
-    spec = importlib.util.spec_from_file_location("bench_auto_init", BENCH)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses resolve annotations through sys.modules
-    spec.loader.exec_module(module)
-    return module
-
-
-bench = _bench()
+bench = load_benchmark("bench_auto_init")
 
 
 def test_three_joint_rotation_ik_inverts_the_chain() -> None:

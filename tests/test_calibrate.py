@@ -2,14 +2,11 @@
 
 from __future__ import annotations
 
-import importlib.util
-import sys
 from dataclasses import replace
-from pathlib import Path
-from types import ModuleType
 
 import numpy as np
 import pytest
+from conftest import load_benchmark
 from scipy.stats import chi2
 
 import dcc_fg.calibrate as calibrate_module
@@ -26,7 +23,6 @@ from dcc_fg.targets import TargetGeometry
 from dcc_fg.util.errors import EstimatorError
 
 PAPER_JOINT_ERR = (5.89e-3, 2.38e-3)  # Table II, calibration set
-BENCH_STATISTICS = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_statistics.py"
 
 
 def test_demo_accuracy_beats_paper_table_ii(demo_sim, demo_result) -> None:
@@ -66,16 +62,7 @@ def test_gauge_rules_remove_exactly_the_null_space(L: int) -> None:
         assert null_space(S[np.ix_(~fixed, ~fixed)]).shape[1] == len(gauge_fixed_joint_offsets(L, mode))
 
 
-def _bench_statistics() -> ModuleType:
-    spec = importlib.util.spec_from_file_location("bench_statistics", BENCH_STATISTICS)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses resolve annotations through sys.modules
-    spec.loader.exec_module(module)
-    return module
-
-
-bench_statistics = _bench_statistics()
+bench_statistics = load_benchmark("bench_statistics")
 
 
 def _seed_study(n_joints: int, seeds: range) -> dict[str, np.ndarray]:

@@ -9,31 +9,17 @@ sampling bounds of that many seeds.
 
 from __future__ import annotations
 
-import importlib.util
-import sys
-from pathlib import Path
-from types import ModuleType
-
 import numpy as np
 import pytest
+from conftest import load_benchmark
 from scipy.stats import chi2
 
 pytestmark = pytest.mark.slow  # ~12 s per seed (covariances, two-way solve, Cramer-Rao bound)
 
-BENCH = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_statistics.py"
 SEEDS = range(6)
 
 
-def _bench() -> ModuleType:
-    spec = importlib.util.spec_from_file_location("bench_statistics", BENCH)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses resolve annotations through sys.modules
-    spec.loader.exec_module(module)
-    return module
-
-
-bench = _bench()
+bench = load_benchmark("bench_statistics")
 # 95% interval of the mean of len(SEEDS) independent chi-square(6) variables: chi2(6 n) quantiles / n.
 # It is exact for one snapshot per seed (the seeds are independent). For the mean over all 81
 # snapshots of a seed (correlated through the shared kinematics) the spread can only be smaller,
