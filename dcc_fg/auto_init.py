@@ -406,9 +406,11 @@ def three_joint_candidates(
     out = []
     for _, w1, b3, alphas in minima[:N_L3_KEEP]:
         kin0, th0 = proj.kin(w1, b3, alphas)
-        out.append(pose_level_refine(
+        out.append(
+            pose_level_refine(
                 kin0, 3, T_ds, th0, free, [2], True, max_iterations=CANDIDATE_MAX_ITERATIONS, rel_tol=CANDIDATE_REL_TOL
-            ))
+            )
+        )
     return sorted(out, key=lambda c: c[2])
 
 
@@ -472,7 +474,7 @@ def distinct(
     out: list[tuple[FloatArray, FloatArray, float]] = []
     predictions: list[FloatArray] = []
     for kin, th, rms in sorted(fits, key=lambda c: c[2]):
-        T = np.array([chain.T_ds(kin, t, n_joints) for t in th])
+        T = chain.T_ds_batch(kin, th, n_joints)
         if not any(np.max(np.abs(T[:, :3, :] - P[:, :3, :])) < SAME_MINIMUM for P in predictions):
             out.append((kin, th, rms))
             predictions.append(T)

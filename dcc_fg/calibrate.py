@@ -293,7 +293,14 @@ def initial_problem(
     with stage("pose-level initialization", hint="check the initial kinematics (--gimbal) or use --init auto"):
         if opt.mode != "validate" and L > 0:
             kin_start, thetas_fit, _ = robust_pose_level_init(
-                initial.kin, L, T_ds_pnp, thetas0, ~fixed, offsets, estimate_theta, rel_tol=POSE_LEVEL_REL_TOL,
+                initial.kin,
+                L,
+                T_ds_pnp,
+                thetas0,
+                ~fixed,
+                offsets,
+                estimate_theta,
+                rel_tol=POSE_LEVEL_REL_TOL,
                 max_iterations=POSE_LEVEL_MAX_ITERATIONS,
             )
             if estimate_theta:

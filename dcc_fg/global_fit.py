@@ -67,10 +67,7 @@ def data_cost(result: CalibrationResult) -> float:
 def T_ds_differences(a: CalibrationResult, b: CalibrationResult) -> FloatArray:
     """(K, 6) ``Log(T_ds_a^-1 T_ds_b)`` per snapshot, [omega rad, v m] (gtsam Pose3 local coordinates)."""
     return np.array(
-        [
-            gtsam.Pose3(a.T_ds(i)).localCoordinates(gtsam.Pose3(b.T_ds(i)))
-            for i in range(len(a.timestamps_ns))
-        ]
+        [gtsam.Pose3(a.T_ds(i)).localCoordinates(gtsam.Pose3(b.T_ds(i))) for i in range(len(a.timestamps_ns))]
     )
 
 

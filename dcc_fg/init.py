@@ -183,13 +183,15 @@ class PoseLevelProblem:
         K, L, nf, w = self.K, self.n_joints, self.nf, self.w
         r = np.zeros(6 * K + self.G.shape[0])
         blocks = np.zeros((K, 6, nf + self.n_local)) if jac else None
+        if blocks is None:
+            T = chain.T_ds_batch(kin, th, L)
+        else:
+            T, Jk, Jt = chain.d_T_ds_tangent_batch(kin, th, L)
+            blocks[:, :, :nf] = w[:, None] * Jk[:, :, self.free_idx]
+            if self.estimate_theta:
+                blocks[:, :, nf:] = w[:, None] * Jt
         for i in range(K):
-            r[6 * i : 6 * i + 6] = w * self.meas[i].localCoordinates(gtsam.Pose3(chain.T_ds(kin, th[i], L)))
-            if blocks is not None:
-                Jk, Jt = chain.d_T_ds_tangent(kin, th[i], L)
-                blocks[i, :, :nf] = w[:, None] * Jk[:, self.free_idx]
-                if self.estimate_theta:
-                    blocks[i, :, nf:] = w[:, None] * Jt
+            r[6 * i : 6 * i + 6] = w * self.meas[i].localCoordinates(gtsam.Pose3(T[i]))
         for row, j in enumerate(self.gauge_joints):
             r[6 * K + row] = GAUGE_ROW_WEIGHT * (th[:, j].mean() - self.mean0[j])
         if blocks is None:

@@ -119,12 +119,12 @@ class RobustLoss:
 def pose_point_jacobian(R_st: FloatArray, p_t: FloatArray) -> FloatArray:
     """d (T_st p_t) / d xi for the gtsam Pose3 retraction T_st Exp(xi), xi = [omega, v]: (N, 3, 6)."""
     n = p_t.shape[0]
+    x, y, z = p_t[:, 0], p_t[:, 1], p_t[:, 2]
+    neg_skew = np.zeros((n, 3, 3))  # -[p]x: column k is e_k x p
+    neg_skew[:, 0, 1], neg_skew[:, 0, 2], neg_skew[:, 1, 2] = z, -y, x
+    neg_skew[:, 1, 0], neg_skew[:, 2, 0], neg_skew[:, 2, 1] = -z, y, -x
     J = np.empty((n, 3, 6))
-    # -R [p]x  : column k is R (e_k x p)
-    for k in range(3):
-        e = np.zeros(3)
-        e[k] = 1.0
-        J[:, :, k] = np.cross(e, p_t) @ R_st.T
+    J[:, :, 0:3] = R_st @ neg_skew
     J[:, :, 3:6] = R_st
     return J
 

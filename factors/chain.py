@@ -249,8 +249,11 @@ def link_jacobians(
         Rxm = rot_x(-alpha)
         C = carry[l]
         rotated = q[l - 1] @ rot_z(-th).T  # Rz(-theta_l) q_{l-1}
-        dq_dtheta = -np.cross(E_Z, rotated) @ Rxm.T
-        dq_dalpha = -np.cross(E_X, q[l])
+        z_cross = np.zeros_like(rotated)  # e_z x rotated = [-y, x, 0]
+        z_cross[:, 0], z_cross[:, 1] = -rotated[:, 1], rotated[:, 0]
+        dq_dtheta = -z_cross @ Rxm.T
+        dq_dalpha = np.zeros_like(q[l])  # -(e_x x q_l) = [0, z, -y]
+        dq_dalpha[:, 1], dq_dalpha[:, 2] = q[l][:, 2], -q[l][:, 1]
         col = 12 + 3 * (l - 1)
         d_theta[:, :, l - 1] = dq_dtheta @ C.T
         d_kin[:, :, col + 0] = C @ (-Rxm @ E_Z)
@@ -302,3 +305,137 @@ def d_T_ds_tangent(kin: FloatArray, theta: FloatArray, n_joints: int) -> tuple[F
         wz = (local[1] - v)[1]
         out.append(np.vstack([wx, wy, wz, v]))
     return out[0], out[1]
+
+
+# ------------------------------------------------------------------ batched over snapshots
+
+
+def _rot_z_batch(a: FloatArray) -> FloatArray:
+    """(K, 3, 3) rotations about z by the angles ``a`` (K,), radians."""
+    c, s = np.cos(a), np.sin(a)
+    R = np.zeros((a.shape[0], 3, 3))
+    R[:, 0, 0], R[:, 0, 1], R[:, 1, 0], R[:, 1, 1], R[:, 2, 2] = c, -s, s, c, 1.0
+    return R
+
+
+def _inv_dh_links(dh_l: FloatArray, theta_l: FloatArray) -> FloatArray:
+    """(K, 4, 4) ``inv(A_l(theta_l))`` for K angles (rad) of one DH link ``[d, a, alpha]``.
+
+    ``A_l = [Rz(theta) Rx(alpha), Rz(theta) (a e_x + d e_z)]`` so
+    ``inv(A_l) = [Rx(-alpha) Rz(-theta), -Rx(-alpha) (a e_x + d e_z)]``.
+    """
+    d, a, alpha = dh_l
+    Rxm = rot_x(-alpha)
+    out = np.zeros((theta_l.shape[0], 4, 4))
+    out[:, :3, :3] = Rxm @ _rot_z_batch(-theta_l)
+    out[:, :3, 3] = -Rxm @ np.array([a, 0.0, d])
+    out[:, 3, 3] = 1.0
+    return out
+
+
+def _inv_se3_batch(T: FloatArray) -> FloatArray:
+    """(K, 4, 4) inverses of rigid transforms (K, 4, 4)."""
+    Ti = np.zeros_like(T)
+    Rt = np.swapaxes(T[:, :3, :3], 1, 2)
+    Ti[:, :3, :3] = Rt
+    Ti[:, :3, 3] = -np.einsum("kij,kj->ki", Rt, T[:, :3, 3])
+    Ti[:, 3, 3] = 1.0
+    return Ti
+
+
+def adjoint_batch(T: FloatArray) -> FloatArray:
+    """(K, 6, 6) adjoints of rigid transforms (K, 4, 4) in gtsam's tangent order ``[omega, v]``:
+    ``Ad_T = [[R, 0], [skew(t) R, R]]``, so that ``T Exp(xi) T^-1 = Exp(Ad_T xi)``."""
+    R, t = T[:, :3, :3], T[:, :3, 3]
+    S = np.zeros((T.shape[0], 3, 3))
+    S[:, 0, 1], S[:, 0, 2], S[:, 1, 2] = -t[:, 2], t[:, 1], -t[:, 0]
+    S[:, 1, 0], S[:, 2, 0], S[:, 2, 1] = t[:, 2], -t[:, 1], t[:, 0]
+    Ad = np.zeros((T.shape[0], 6, 6))
+    Ad[:, :3, :3] = R
+    Ad[:, 3:, 3:] = R
+    Ad[:, 3:, :3] = S @ R
+    return Ad
+
+
+def _euler_body_rates(r: FloatArray) -> FloatArray:
+    """(3, 3) columns ``w_k`` with ``dR/dr_k = R skew(w_k)`` for ``R = Rz Ry Rx`` (body rates of the
+    three Euler angles): ``w_x = e_x``, ``w_y = Rx^T e_y``, ``w_z = (Ry Rx)^T e_z``."""
+    Rx, Ry = rot_x(r[0]), rot_y(r[1])
+    return np.column_stack([E_X, Rx.T @ np.array([0.0, 1.0, 0.0]), (Ry @ Rx).T @ E_Z])
+
+
+def _tau_twists(tau: FloatArray) -> FloatArray:
+    """(6, 6) columns: the right-perturbation twists ``[omega, v]`` of ``se3_from_tau(tau)`` per
+    entry of ``tau``: rotations ``[w_k, 0]``, translations ``[0, R^T e_k]``."""
+    X = np.zeros((6, 6))
+    X[:3, :3] = _euler_body_rates(tau[:3])
+    X[3:, 3:] = se3_from_tau(tau)[:3, :3].T
+    return X
+
+
+def _dh_twists(dh_l: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Right-perturbation twists of ``A_l``: ``(xi_theta (6,), Xi (6, 3))`` with columns for
+    ``[d, a, alpha]``, i.e. ``A_l(p + dp) = A_l Exp(xi dp)``:
+    ``xi_theta = [0, sin al, cos al, 0, a cos al, -a sin al]``, ``xi_d = [0, 0, 0, 0, sin al, cos al]``,
+    ``xi_a = [0, 0, 0, 1, 0, 0]``, ``xi_alpha = [1, 0, 0, 0, 0, 0]``."""
+    _, a, al = dh_l
+    s, c = np.sin(al), np.cos(al)
+    xi_theta = np.array([0.0, s, c, 0.0, a * c, -a * s])
+    Xi = np.zeros((6, 3))
+    Xi[4, 0], Xi[5, 0] = s, c
+    Xi[3, 1] = 1.0
+    Xi[0, 2] = 1.0
+    return xi_theta, Xi
+
+
+def T_ds_batch(kin: FloatArray, thetas: FloatArray, n_joints: int) -> FloatArray:
+    """(K, 4, 4) ``T_ds(theta_i)`` (paper eq. 5) for the joint angles ``thetas`` (K, L), radians."""
+    return _chain_products(kin, thetas, n_joints)[0]
+
+
+def _chain_products(kin: FloatArray, thetas: FloatArray, n_joints: int) -> tuple[FloatArray, list[FloatArray]]:
+    """``T_ds`` (K, 4, 4) and the partial products ``Q_l = inv(A_{l-1}) ... inv(A_1) T_bs`` for
+    l = 1 .. L + 1 (``Q_1 = T_bs``, ``Q_{L+1} = T_eb T_bs``), each (K, 4, 4)."""
+    tau_s, tau_d, dh = split_kin(kin, n_joints)
+    thetas = np.asarray(thetas, dtype=float)
+    if thetas.ndim != 2 or thetas.shape[1] != n_joints:
+        raise ValueError(f"thetas must be (K, {n_joints}), got {thetas.shape}")
+    K = thetas.shape[0]
+    Q = [np.broadcast_to(se3_from_tau(tau_s), (K, 4, 4))]
+    for l in range(n_joints):
+        Q.append(_inv_dh_links(dh[l], thetas[:, l]) @ Q[-1])
+    return se3_from_tau(tau_d) @ Q[-1], Q
+
+
+def d_T_ds_tangent_batch(
+    kin: FloatArray, thetas: FloatArray, n_joints: int
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """:func:`d_T_ds_tangent` for K joint-angle vectors at once, by the adjoint of each factor.
+
+    With ``T_ds = T_de inv(A_L) ... inv(A_1) T_bs`` and right perturbations
+    ``T(x + dx) ~= T Exp(J dx)``:
+
+    * ``T_bs`` (last factor): its own twist, ``J = xi``;
+    * ``T_de``: ``J = Ad(inv(Q_{L+1})) xi`` with ``Q_{L+1} = T_eb T_bs``;
+    * link l: ``inv(A_l Exp(xi dp)) = Exp(-xi dp) inv(A_l)``, so ``J = -Ad(inv(Q_{l+1})) xi``.
+
+    Args:
+        kin: kinematic parameters (12 + 3L).
+        thetas: (K, L) joint angles, radians.
+
+    Returns:
+        ``(T_ds (K, 4, 4), J_kin (K, 6, 12 + 3L), J_theta (K, 6, L))``, rows ``[omega (rad), v (m)]``.
+    """
+    tau_s, tau_d, dh = split_kin(kin, n_joints)
+    T, Q = _chain_products(kin, thetas, n_joints)
+    K, L = T.shape[0], n_joints
+    J_kin = np.zeros((K, 6, n_kin(L)))
+    J_theta = np.zeros((K, 6, L))
+    J_kin[:, :, 0:6] = _tau_twists(tau_s)
+    Ad = [adjoint_batch(_inv_se3_batch(q)) for q in Q]  # Ad[l] = Ad(inv(Q_{l+1})), l = 0 .. L
+    J_kin[:, :, 6:12] = Ad[L] @ _tau_twists(tau_d)
+    for l in range(L):
+        xi_theta, Xi = _dh_twists(dh[l])
+        J_theta[:, :, l] = -Ad[l + 1] @ xi_theta
+        J_kin[:, :, 12 + 3 * l : 15 + 3 * l] = -Ad[l + 1] @ Xi
+    return T, J_kin, J_theta

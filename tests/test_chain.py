@@ -89,6 +89,36 @@ def test_T_ds_tangent_jacobian_matches_gtsam_local_coordinates(L: int) -> None:
         assert rel_err(Jt[:, k], num) < 1e-6
 
 
+@pytest.mark.parametrize("L", [0, 1, 2, 3])
+@pytest.mark.parametrize("seed", range(3))
+def test_batched_T_ds_tangent_jacobians_match_numerical_differentiation(L: int, seed: int) -> None:
+    """d_T_ds_tangent_batch (adjoint form) against central differences of gtsam local coordinates,
+    snapshot by snapshot, and T_ds_batch against T_ds."""
+    rng = np.random.default_rng(300 + seed)
+    kin, th = random_kin(rng, L), rng.uniform(-np.pi, np.pi, (4, L))
+    T, Jk, Jt = chain.d_T_ds_tangent_batch(kin, th, L)
+    np.testing.assert_allclose(chain.T_ds_batch(kin, th, L), T, atol=1e-14)
+    for i in range(th.shape[0]):
+        np.testing.assert_allclose(T[i], chain.T_ds(kin, th[i], L), atol=1e-12)
+        T0 = gtsam.Pose3(T[i])
+
+        def local(k: np.ndarray, t: np.ndarray, T0: gtsam.Pose3 = T0) -> np.ndarray:
+            return T0.localCoordinates(gtsam.Pose3(chain.T_ds(k, t, L)))
+
+        for k in range(kin.size):
+            e = np.zeros_like(kin)
+            e[k] = H
+            num = (local(kin + e, th[i]) - local(kin - e, th[i])) / (2 * H)
+            assert np.max(np.abs(num - Jk[i, :, k])) < 1e-6 * max(1.0, np.max(np.abs(num))), chain.kin_names(L)[k]
+        for k in range(L):
+            e = np.zeros(L)
+            e[k] = H
+            num = (local(kin, th[i] + e) - local(kin, th[i] - e)) / (2 * H)
+            assert rel_err(Jt[i, :, k], num) < 1e-6
+    with pytest.raises(ValueError, match="thetas"):
+        chain.T_ds_batch(kin, np.zeros((3, L + 1)), L)
+
+
 def test_tau_round_trip() -> None:
     rng = np.random.default_rng(3)
     for _ in range(20):
