@@ -16,7 +16,10 @@ Exit status 1 when a criterion of issue 14 fails for some L:
 * NEES: mean over members of each member's mean NEES inside chi2.ppf([0.025, 0.975], 6 M) / M.
 
 Run: ``python benchmarks/bench_random_mechanisms.py [--n 50] [--joints 1,2,3] [--snapshots 40]
-[--seed0 0] [--workers 2] [--json OUT.json]``.
+[--seed0 0] [--workers 2] [--json OUT.json]``; ``--from-json A.json [B.json ...]`` prints the tables
+of earlier runs (merged, e.g. one run per L) without running anything. A second table repeats the
+criteria on the members whose joint axes intersect exactly (the family draws them with probability
+1/4): the degenerate mechanisms whose extra directions are held by a prior.
 """
 
 from __future__ import annotations
@@ -90,19 +93,8 @@ def table(summaries: list[FamilySummary]) -> str:
     return "\n".join(lines)
 
 
-def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("--n", type=int, default=50, help="members per L (default 50)")
-    p.add_argument("--joints", default="1,2,3", help="comma-separated L values (default 1,2,3)")
-    p.add_argument("--snapshots", type=int, default=40, help="image pairs rendered per member (default 40)")
-    p.add_argument("--seed0", type=int, default=0, help="first family seed (default 0)")
-    p.add_argument("--workers", type=int, default=2, help="parallel processes (default 2)")
-    p.add_argument("--json", help="write every per-member record and the per-L summaries to this JSON file")
-    args = p.parse_args(argv)
-    joints = [int(x) for x in args.joints.split(",") if x.strip()]
-    if args.n < 1 or args.snapshots < 1 or args.workers < 1 or not joints:
-        p.error("--n, --snapshots and --workers must be >= 1 and --joints non-empty")
-
+def run_all(joints: list[int], args: argparse.Namespace) -> list[MechanismRecord]:
+    """Every member of every L, ``args.workers`` at a time, each printed as it finishes."""
     t0 = time.perf_counter()
     jobs = [(seed, L) for L in joints for seed in range(args.seed0, args.seed0 + args.n)]
     records: list[MechanismRecord] = []
@@ -118,10 +110,16 @@ def main(argv: list[str] | None = None) -> int:
                 rec = MechanismRecord(seed, L, args.snapshots, failure=f"worker failed: {type(exc).__name__}: {exc}")
             records.append(rec)
             print(f"[{len(records)}/{len(jobs)} {time.perf_counter() - t0:.0f} s] {member_line(rec)}", flush=True)
-    wall = time.perf_counter() - t0
-    records.sort(key=lambda r: (r.n_joints, r.seed))
-    summaries = [summarize(records, L) for L in joints]
+    return records
 
+
+def intersecting(records: list[MechanismRecord]) -> list[MechanismRecord]:
+    """The members of L >= 2 whose joint axes intersect exactly in one point (the family's draw)."""
+    return [r for r in records if r.n_joints >= 2 and r.description.get("intersecting_axes")]
+
+
+def report(records: list[MechanismRecord], summaries: list[FamilySummary]) -> None:
+    """The criteria, the per-L table, the exactly-intersecting subset and the failures."""
     print()
     print(
         f"issue 14 criteria: global minimum = auto cost <= truth-start cost * (1 + {COST_REL_TOL:g}) for >= 49/50; "
@@ -138,11 +136,45 @@ def main(argv: list[str] | None = None) -> int:
             f"[{_fmt(lo)}, {_fmt(hi)}]; median per member: wall {_fmt(s.median_time_s['total'], '.1f')} s, "
             f"CPU {_fmt(s.median_time_s['cpu'], '.1f')} s"
         )
+    sub = intersecting(records)
+    if sub:
+        print("\nsubset: exactly intersecting joint axes (a spherical wrist for L = 3)")
+        print(table([summarize(sub, L) for L in sorted({r.n_joints for r in sub})]))
     failures = [f for s in summaries for f in s.failures]
     print(f"\nfailures and findings ({len(failures)}):" if failures else "\nno failures")
     for f in failures:
         print("  " + f)
-    print(f"\n{len(records)} members in {wall:.0f} s wall with {args.workers} workers")
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--n", type=int, default=50, help="members per L (default 50)")
+    p.add_argument("--joints", default="1,2,3", help="comma-separated L values (default 1,2,3)")
+    p.add_argument("--snapshots", type=int, default=40, help="image pairs rendered per member (default 40)")
+    p.add_argument("--seed0", type=int, default=0, help="first family seed (default 0)")
+    p.add_argument("--workers", type=int, default=2, help="parallel processes (default 2)")
+    p.add_argument("--json", help="write every per-member record and the per-L summaries to this JSON file")
+    p.add_argument(
+        "--from-json", nargs="+", metavar="FILE", help="print the tables of earlier --json runs (merged), run nothing"
+    )
+    args = p.parse_args(argv)
+    joints = [int(x) for x in args.joints.split(",") if x.strip()]
+    if args.n < 1 or args.snapshots < 1 or args.workers < 1 or not joints:
+        p.error("--n, --snapshots and --workers must be >= 1 and --joints non-empty")
+
+    t0 = time.perf_counter()
+    if args.from_json:
+        saved = [json.loads(Path(f).read_text()) for f in args.from_json]
+        records = [MechanismRecord.from_dict(d) for run in saved for d in run["records"]]
+        joints = sorted({r.n_joints for r in records})
+    else:
+        records = run_all(joints, args)
+    wall = time.perf_counter() - t0
+    records.sort(key=lambda r: (r.n_joints, r.seed))
+    summaries = [summarize(records, L) for L in joints]
+    report(records, summaries)
+    if not args.from_json:
+        print(f"\n{len(records)} members in {wall:.0f} s wall with {args.workers} workers")
     if args.json:
         out = {
             "args": vars(args),
