@@ -14,6 +14,15 @@ from dcc_fg.commands import common
 from dcc_fg.sim.flight_bag import write_flight
 from dcc_fg.sim.mechanism_family import describe, family_member
 from dcc_fg.sim.render import RenderConfig
+from dcc_fg.sim.timing import (
+    MAX_OFFSET_S,
+    CameraTiming,
+    check_jitter,
+    check_offsets,
+    check_phase,
+    check_rates,
+    parse_pair,
+)
 from dcc_fg.sim.trajectory import FlightConfig, locked_gimbal
 from dcc_fg.sim.write_dataset import DYNAMIC_TOPIC, STATIC_TOPIC, CalibrationSimSpec, write_calibration_dataset
 from dcc_fg.vio.backend import VioOptions
@@ -31,7 +40,9 @@ CALIBRATION_DESCRIPTION = (
     "mechanism_family): L = 1-3 joints, link offsets 0 (exactly intersecting axes, 1 in 4) or 1 mm-10 cm, twists "
     "near 90 deg or 20-160 deg, joint ranges +-8 to +-60 deg, random radtan/equidistant cameras (640x480 to "
     "1280x720, 50-90 deg horizontal field of view), a random checkerboard or AprilGrid and board distances "
-    "scaled to it; ground_truth.yaml then also holds the drawn 'mechanism'."
+    "scaled to it; ground_truth.yaml then also holds the drawn 'mechanism'. With --motion continuous the board "
+    "and the gimbal keep moving while both cameras record at their own --rates, --phase, --time-offsets "
+    "(convention t_imu = t_cam_stamp + t_offset) and --stamp-jitter."
 )
 
 FLIGHT_SUMMARY = "render a VIO flight (IMU, static and gimbal camera) into a ROS1/ROS2 bag"
@@ -39,7 +50,10 @@ FLIGHT_DESCRIPTION = (
     "A body flying rounded-rectangle loops in a textured box room with a freely moving 2-joint "
     "gimbal: /imu0 (200 Hz), /cam0/image_raw (static) and /cam1/image_raw (gimbal) at 20 Hz, truth on "
     "/ground_truth/pose and /ground_truth/joints; also calibration.yaml (with an imu: section), "
-    "ground_truth.tum and ground_truth_joints.csv."
+    "ground_truth.tum and ground_truth_joints.csv (gimbal joint angles at each gimbal image's true exposure "
+    "time, keyed by its header stamp). --rates, --phase, --time-offsets and --stamp-jitter make the cameras "
+    "unsynchronized (convention t_imu = t_cam_stamp + t_offset); the truth is then also in calibration.yaml "
+    "flight.timing and ground_truth_frames.csv."
 )
 
 
@@ -61,6 +75,79 @@ def bounded(kind: type, minimum: float, positive: bool = False) -> Any:
 
 log = logging.getLogger("dcc_fg.simulate")
 
+
+def _pair_type(flag: str, check: Any) -> Any:
+    """An argparse ``type`` for ``A,B`` pairs validated by ``check`` (messages name ``flag``)."""
+
+    def parse(text: str) -> tuple[float, float]:
+        try:
+            pair = parse_pair(text, flag)
+            check(pair)
+        except ValueError as exc:
+            raise argparse.ArgumentTypeError(str(exc)) from None
+        return pair
+
+    return parse
+
+
+def _number_type(flag: str, check: Any) -> Any:
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{flag} expects a number of seconds, got {text!r}") from None
+        try:
+            check(value)
+        except ValueError as exc:
+            raise argparse.ArgumentTypeError(str(exc)) from None
+        return value
+
+    return parse
+
+
+def camera_timing(args: argparse.Namespace) -> CameraTiming:
+    """The :class:`CameraTiming` of the ``--rates``, ``--phase``, ``--time-offsets`` and ``--stamp-jitter`` flags."""
+    return CameraTiming(args.rates, args.phase, args.time_offsets, args.stamp_jitter)
+
+
+TIMING_FLAGS = ("--rates", "--phase", "--time-offsets", "--stamp-jitter")
+
+
+def add_timing_flags(p: argparse.ArgumentParser, where: str) -> None:
+    """``--rates``, ``--phase``, ``--time-offsets``, ``--stamp-jitter`` (see :mod:`dcc_fg.sim.timing`)."""
+    p.add_argument(
+        "--rates",
+        type=_pair_type("--rates", check_rates),
+        default=CameraTiming.rates,
+        metavar="R_STATIC,R_GIMBAL",
+        help=f"frame rates of the static and the gimbal camera, Hz, > 0 (default 20,20: synchronized){where}",
+    )
+    p.add_argument(
+        "--phase",
+        type=_number_type("--phase", check_phase),
+        default=CameraTiming.phase,
+        metavar="SECONDS",
+        help="start of the gimbal camera's stream relative to the static one's (true exposure times), s (default 0)",
+    )
+    p.add_argument(
+        "--time-offsets",
+        type=_pair_type("--time-offsets", check_offsets),
+        default=CameraTiming.time_offsets,
+        metavar="T_S,T_D",
+        help="constant offset of each camera's header stamps from its true exposure time, s, "
+        f"|offset| < {MAX_OFFSET_S}; convention t_imu = t_cam_stamp + t_offset (OpenVINS calib_camimu_dt, "
+        "Kalibr timeshift_cam_imu): an image exposed at true time t is stamped t - t_offset (default 0,0)",
+    )
+    p.add_argument(
+        "--stamp-jitter",
+        type=_number_type("--stamp-jitter", check_jitter),
+        default=CameraTiming.stamp_jitter,
+        metavar="SECONDS",
+        help="standard deviation of zero-mean Gaussian noise added to every header stamp, s, >= 0 (default 0; "
+        "a warning if it makes a camera's stamps go backwards)",
+    )
+
+
 SIMULATE_OUT_HELP = (
     "It must not already hold a data set (any of the names this command writes) unless --force, nor be the result "
     "folder of another command. Everything is written into a hidden staging folder and moved into place together "
@@ -78,14 +165,21 @@ def simulate_calibration_command(args: argparse.Namespace) -> int:
         if args.joints == 0:
             raise ValueError("--random-mechanism needs --joints 1, 2 or 3 (or none: drawn by the family)")
     target = args.target or "checkerboard"
+    timing = camera_timing(args)
+    if args.motion == "held" and not timing.is_default:
+        raise ValueError(f"{', '.join(TIMING_FLAGS)} need --motion continuous (held snapshots are image pairs)")
     spec = CalibrationSimSpec(
-        target, args.format, args.seed, args.snapshots, args.joints, render, args.storage, random_mechanism=seed
-    )
+        target, args.format, args.seed, args.snapshots, args.joints, render, args.storage, random_mechanism=seed,
+        motion=args.motion, timing=timing,
+    )  # fmt: skip
     if seed is not None:
         print(describe(family_member(seed, args.joints, args.snapshots)))
     res = write_calibration_dataset(args.out, spec, force=args.force)
+    what = f"{len(res.T_st)} image pairs"
+    if res.images is not None:
+        what = f"{res.images[0]} static + {res.images[1]} gimbal images of a continuous recording"
     print(
-        f"rendered {len(res.T_st)} image pairs in {res.render_time_s:.1f} s: {res.data}\n"
+        f"rendered {what} in {res.render_time_s:.1f} s: {res.data}\n"
         f"wrote {res.camchain}, {res.target}, {res.gimbal}, {res.ground_truth}\n"
         f"calibrate with: dcc-fg calibrate {res.data} --camchain {res.camchain} --target {res.target} "
         f"--gimbal {res.gimbal} --out {Path(args.out) / 'calibration'}"
@@ -99,6 +193,7 @@ def simulate_flight_command(args: argparse.Namespace) -> int:
         raise ValueError("--duration and --pattern loops exclude each other (the loops take 90 s)")
     config = FlightConfig.short(args.duration) if args.duration is not None else FlightConfig()
     joints = locked_gimbal() if args.gimbal == "locked" else None
+    timing = camera_timing(args)
     res = write_flight(
         args.out,
         args.format,
@@ -108,6 +203,7 @@ def simulate_flight_command(args: argparse.Namespace) -> int:
         joints=joints,
         progress=not args.quiet,
         force=args.force,
+        timing=timing,
     )
     speed = float(np.linalg.norm(res.truth.v_W, axis=1).max()) if len(res.truth.v_W) else 0.0
     limit = VioOptions().max_speed
@@ -118,8 +214,13 @@ def simulate_flight_command(args: argparse.Namespace) -> int:
             speed,
             limit,
         )
+    images = (
+        f"{res.frames} frame pairs"
+        if timing.is_default
+        else f"{res.images[0]} static + {res.images[1]} gimbal images, truth per image in {res.frames_truth}"
+    )
     print(
-        f"wrote {res.bag} ({res.frames} frame pairs, {res.truth.distance:.1f} m, "
+        f"wrote {res.bag} ({images}, {res.truth.distance:.1f} m, "
         f"{res.render_ms_per_pair:.1f} ms CPU rendering per pair, {res.seconds:.1f} s), {res.calibration}, "
         f"{res.ground_truth}, {res.joints}"
     )
@@ -188,6 +289,16 @@ def add_calibration_parser(sub: Any, parent: argparse.ArgumentParser) -> None:
         default=RenderConfig.blur_sigma_px,
         help="Gaussian blur sigma, pixels (default 0.6)",
     )
+    p.add_argument(
+        "--motion",
+        choices=["held", "continuous"],
+        default="held",
+        help="held: one image pair per snapshot, the rig held still (default); continuous: the board (up to 30 deg/s, "
+        "0.25 m/s) and the gimbal joints (up to 20 deg/s) keep moving through the snapshots while both cameras "
+        "record at --rates, as a hand-held recording (--snapshots >= 2 waypoints; ground_truth.yaml then holds "
+        "the truth at every image's true exposure time under 'images' and the timing under 'motion')",
+    )
+    add_timing_flags(p, "; with --motion continuous only")
 
 
 def add_flight_parser(sub: Any, parent: argparse.ArgumentParser) -> None:
@@ -218,6 +329,8 @@ def add_flight_parser(sub: Any, parent: argparse.ArgumentParser) -> None:
         help="moving: sinusoids and +-30 deg slews at up to 60 deg/s per joint (default); locked: held at its mid "
         "position (for scc runs, angles in calibration.yaml flight.joints_locked, rad)",
     )
+    add_timing_flags(f, "; the true timing is recorded in calibration.yaml flight.timing and per image in "
+                     "ground_truth_frames.csv")  # fmt: skip
 
 
 def add_parser(sub: Any, parent: argparse.ArgumentParser) -> None:

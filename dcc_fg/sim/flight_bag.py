@@ -11,10 +11,29 @@ Output folder ``DIR``:
 * ``calibration.yaml``: the true chain and cameras (:meth:`GimbalCalibration.to_dict`) plus an
   ``imu:`` section (:meth:`ImuConfig.to_dict`: ``T_sI`` and the IMU noise the flight was made with);
 * ``ground_truth.tum`` (``t[s] tx ty tz qx qy qz qw``, body in W, at the IMU rate) and
-  ``ground_truth_joints.csv`` (``timestamp_ns,theta_1..theta_L`` at the camera frames).
+  ``ground_truth_joints.csv`` (``timestamp_ns,theta_1..theta_L``: one row per gimbal image,
+  ``timestamp_ns`` = that image's *header stamp*, the angles at its *true exposure time*).
+
+Camera timing (:class:`~dcc_fg.sim.timing.CameraTiming`, flags ``--rates``, ``--phase``,
+``--time-offsets``, ``--stamp-jitter``): by default both cameras run at 20 Hz with identical stamps
+on IMU sample times (the bag, ``calibration.yaml`` and the CSV files are then exactly those of the
+synchronized simulator). Otherwise each camera renders at its own true exposure times (the body
+pose and the joint angles at that instant, between IMU samples from the analytic trajectory) and
+is stamped with the convention ``t_imu = t_cam_stamp + t_offset`` (an image exposed at true IMU
+time t carries the stamp ``t - t_offset``, plus jitter); the IMU and truth topics are unchanged.
+The truth then also holds
+
+* ``calibration.yaml`` ``flight.timing``: ``convention``, ``rates_hz`` {static, dynamic},
+  ``phase_s``, ``time_offsets_s`` {static, dynamic}, ``stamp_jitter_s``, ``images`` {static,
+  dynamic} (counts) and ``frames_file``. It is a record of the simulation, not a calibration
+  field: an estimator must not start from it;
+* ``ground_truth_frames.csv``: ``camera,stamp_ns,exposure_ns,tx,ty,tz,qx,qy,qz,qw,theta_1..theta_L``,
+  one row per image in exposure order (camera 0 static, 1 gimbal; header stamp and true exposure
+  time in ns; body pose T_WI and joint angles at the exposure).
 
 Times are the simulation's times plus :data:`START_NS` (bags with stamps near zero confuse tools).
-Images are rendered and written one frame at a time, in time order with the IMU.
+Images are rendered and written one at a time, in time order with the IMU; an image's record time
+(bag order) is its true exposure time, its header stamp the camera's stamp.
 """
 
 from __future__ import annotations
@@ -29,15 +48,17 @@ from typing import Any, Literal
 import numpy as np
 import yaml
 from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
 from tqdm import tqdm
 
 from dcc_fg.data.vio import ImuConfig, ImuSamples, load_imu_config
-from dcc_fg.io.bag_writer import BagWriter, joint_names
+from dcc_fg.io.bag_writer import BagWriter, image_message, joint_names
 from dcc_fg.io.output_set import OutputSet
 from dcc_fg.io.outputs import write_joint_angles_csv, write_text_atomic
 from dcc_fg.io.tum import write_tum
 from dcc_fg.model import GimbalCalibration, load_calibration
-from dcc_fg.sim.flight_render import WorldRenderer, planes_from_world, render_flight
+from dcc_fg.sim.flight_render import WorldRenderer, planes_from_world
+from dcc_fg.sim.timing import CameraTiming
 from dcc_fg.sim.trajectory import (
     FlightConfig,
     FlightTruth,
@@ -46,8 +67,12 @@ from dcc_fg.sim.trajectory import (
     default_static_mount,
     flight_calibration,
     simulate_flight,
+    truth_at,
 )
 from factors.camera import CameraModel
+from factors.chain import inv_se3
+
+FloatArray = NDArray[np.float64]
 
 START_NS = 1_600_000_000 * 1_000_000_000
 IMU_TOPIC = "/imu0"
@@ -55,6 +80,8 @@ STATIC_TOPIC = "/cam0/image_raw"
 DYNAMIC_TOPIC = "/cam1/image_raw"
 POSE_TOPIC = "/ground_truth/pose"
 JOINT_TOPIC = "/ground_truth/joints"
+#: Per-image truth of an unsynchronized flight.
+FRAMES_NAME = "ground_truth_frames.csv"
 
 
 @dataclass(frozen=True)
@@ -66,9 +93,12 @@ class FlightBag:
     ground_truth: Path
     joints: Path
     truth: FlightTruth
-    frames: int
-    render_ms_per_pair: float  # CPU time of the process per rendered image pair
+    frames: int  # static camera images (image pairs of a synchronized flight)
+    render_ms_per_pair: float  # CPU time of the process per rendered image pair (per two images)
     seconds: float
+    images: tuple[int, int] = (0, 0)  # images written per camera (static, gimbal)
+    timing: CameraTiming = CameraTiming()
+    frames_truth: Path | None = None  # ground_truth_frames.csv (unsynchronized timing only)
 
 
 def scale_camera(cam: CameraModel, scale: float) -> CameraModel:
@@ -99,49 +129,153 @@ def scaled_flight_calibration(scale: float) -> GimbalCalibration:
     )
 
 
+@dataclass(frozen=True)
+class CameraFrame:
+    """One image of a flight: ``camera`` 0 (static) or 1 (gimbal), its true exposure time and header
+    stamp (int64 ns from the start of the simulation, without :data:`START_NS`), and the truth at
+    the exposure: ``T_WI`` (4, 4) body in the world and ``theta`` (L,) joint angles (rad)."""
+
+    camera: int
+    exposure_ns: int
+    stamp_ns: int
+    T_WI: FloatArray
+    theta: FloatArray
+
+
+def camera_frames(truth: FlightTruth, timing: CameraTiming, seed: int) -> list[CameraFrame]:
+    """Both cameras' frames (:meth:`CameraTiming.streams` over the flight, jitter drawn from
+    ``seed``) with the truth at their exposure times, in exposure order (static first on ties)."""
+    streams = timing.streams(int(truth.t_ns[-1]), np.random.default_rng([seed, 15]))
+    frames = []
+    for s in streams:
+        T_WI, theta = truth_at(truth, s.exposure_ns)
+        frames += [
+            CameraFrame(s.camera, int(e), int(st), T, th)
+            for e, st, T, th in zip(s.exposure_ns, s.stamp_ns, T_WI, theta, strict=True)
+        ]
+    frames.sort(key=lambda f: (f.exposure_ns, f.camera))
+    return frames
+
+
+def render_frames(
+    renderer: WorldRenderer,
+    frames: list[CameraFrame],
+    calibration: GimbalCalibration,
+    T_sI: FloatArray,
+    noise_sigma: float = 2.0,
+    seed: int = 0,
+) -> Iterator[NDArray[np.uint8]]:
+    """The image of every frame, in order: the static camera at ``T_sW = T_sI inv(T_WI)``, the gimbal
+    camera at ``T_ds(theta) T_sW``, both with the truth at the frame's exposure time. Image noise
+    comes from one generator seeded ``seed`` in frame order, so synchronized frames get the same
+    images as :func:`~dcc_fg.sim.flight_render.render_flight`."""
+    cams = (calibration.static_camera, calibration.dynamic_camera)
+    if cams[0] is None or cams[1] is None:
+        raise ValueError("the calibration must carry both camera models to render a flight")
+    rng = np.random.default_rng(seed)
+    for f in frames:
+        T_sW = T_sI @ inv_se3(f.T_WI)
+        T_cW = T_sW if f.camera == 0 else calibration.T_ds(f.theta) @ T_sW
+        yield renderer.render(cams[f.camera], T_cW, noise_sigma, rng)
+
+
 def _write_flight_bag(
     bag_path: Path,
     fmt: Literal["ros1", "ros2"],
     truth: FlightTruth,
-    frames: Iterator[tuple[int, NDArray[np.uint8], NDArray[np.uint8]]],
+    frames: list[CameraFrame],
+    images: Iterator[NDArray[np.uint8]],
     progress: bool,
-) -> tuple[int, float]:
-    """IMU, ground-truth pose and joints at every IMU sample, and the rendered image pairs at the
-    frame times, in time order (stamps ``START_NS`` + simulation time).
+) -> tuple[tuple[int, int], float]:
+    """IMU, ground-truth pose and joints at every IMU sample, and the rendered images, in time order.
+
+    Header stamps are ``START_NS`` + the sample time (IMU, truth) or + the frame's header stamp
+    (images); an image's record time (its place in the bag) is ``START_NS`` + its true exposure time,
+    as if it arrived without latency (on ties: IMU, static, gimbal).
 
     Returns:
-        (image pairs written, CPU seconds spent rendering them).
+        (images written per camera, CPU seconds spent rendering them).
     """
-    frame_set = {int(t): k for k, t in enumerate(truth.frame_t_ns)}
     names = joint_names(truth.theta.shape[1])
     render_s = 0.0
-    n_frames = 0
+    counts = [0, 0]
+    topics, frame_ids = (STATIC_TOPIC, DYNAMIC_TOPIC), ("cam0", "cam1")
+    k = 0
     with (
-        tqdm(total=len(truth.frame_t_ns), unit="frame", desc="rendering", disable=not progress) as bar,
+        tqdm(total=len(frames), unit="image", desc="rendering", disable=not progress) as bar,
         BagWriter(bag_path, 1 if fmt == "ros1" else 2) as bag,
     ):
+
+        def flush(until_ns: int, inclusive: bool) -> None:
+            nonlocal k, render_s
+            while k < len(frames) and (
+                frames[k].exposure_ns < until_ns or (inclusive and frames[k].exposure_ns == until_ns)
+            ):
+                f = frames[k]
+                r0 = time.process_time()
+                img = next(images)
+                render_s += time.process_time() - r0
+                msgtype, msg = image_message(bag.typestore, img, START_NS + f.stamp_ns, frame_ids[f.camera])
+                bag.write(topics[f.camera], msgtype, START_NS + f.exposure_ns, msg)
+                counts[f.camera] += 1
+                k += 1
+                bar.update(1)
+
         for i, t in enumerate(truth.t_ns):
+            flush(int(t), inclusive=False)
             stamp = START_NS + int(t)
             bag.imu(IMU_TOPIC, stamp, truth.imu.acc[i], truth.imu.gyro[i], "imu0")
             bag.pose(POSE_TOPIC, stamp, truth.T_WI[i], "world")
             bag.joints(JOINT_TOPIC, stamp, truth.theta[i], names)
-            if int(t) in frame_set:
-                r0 = time.process_time()
-                t_frame, img_s, img_d = next(frames)
-                render_s += time.process_time() - r0
-                if t_frame != int(t):
-                    raise RuntimeError(f"rendered frame at {t_frame} ns, expected {int(t)} ns")
-                bag.image(STATIC_TOPIC, stamp, img_s, "cam0")
-                bag.image(DYNAMIC_TOPIC, stamp, img_d, "cam1")
-                n_frames += 1
-                bar.update(1)
-    return n_frames, render_s
+            flush(int(t), inclusive=True)
+        if k != len(frames):
+            raise RuntimeError(f"{len(frames) - k} images after the last IMU sample")
+    return (counts[0], counts[1]), render_s
+
+
+def write_frames_csv(path: Path, frames: list[CameraFrame]) -> None:
+    """``ground_truth_frames.csv``: one row per image, in exposure order (module docstring)."""
+    L = frames[0].theta.size if frames else 0
+    head = ["camera", "stamp_ns", "exposure_ns", "tx", "ty", "tz", "qx", "qy", "qz", "qw"]
+    rows = [",".join(head + [f"theta_{j + 1}" for j in range(L)])]
+    for f in frames:
+        q = Rotation.from_matrix(f.T_WI[:3, :3]).as_quat(canonical=True)
+        vals = [*f.T_WI[:3, 3], *q, *f.theta]
+        rows.append(
+            f"{f.camera},{START_NS + f.stamp_ns},{START_NS + f.exposure_ns}," + ",".join(f"{x:.12g}" for x in vals)
+        )
+    write_text_atomic(path, "\n".join(rows) + "\n")
+
+
+def read_frames_csv(path: str | Path) -> dict[str, NDArray[Any]]:
+    """``ground_truth_frames.csv`` read back: ``camera`` (N,) int, ``stamp_ns`` and ``exposure_ns``
+    (N,) int64 (with :data:`START_NS`), ``T_WI`` (N, 4, 4), ``theta`` (N, L)."""
+    lines = Path(path).read_text().splitlines()
+    if not lines or not lines[0].startswith("camera,stamp_ns,exposure_ns"):
+        raise ValueError(f"{path}: expected a header 'camera,stamp_ns,exposure_ns,...'")
+    cols = [ln.split(",") for ln in lines[1:] if ln.strip()]
+    ints = np.array([[int(c[0]), int(c[1]), int(c[2])] for c in cols], dtype=np.int64).reshape(-1, 3)
+    vals = np.array([[float(x) for x in c[3:]] for c in cols], dtype=float).reshape(len(cols), -1)
+    T = np.tile(np.eye(4), (len(cols), 1, 1))
+    if len(cols):
+        T[:, :3, :3] = Rotation.from_quat(vals[:, 3:7]).as_matrix()
+        T[:, :3, 3] = vals[:, :3]
+    return {"camera": ints[:, 0], "stamp_ns": ints[:, 1], "exposure_ns": ints[:, 2], "T_WI": T,
+            "theta": vals[:, 7:]}  # fmt: skip
 
 
 def _calibration_yaml(
-    cal: GimbalCalibration, imu: ImuConfig, truth: FlightTruth, config: FlightConfig, seed: int, scale: float
+    cal: GimbalCalibration,
+    imu: ImuConfig,
+    truth: FlightTruth,
+    config: FlightConfig,
+    seed: int,
+    scale: float,
+    timing: CameraTiming | None = None,
+    images: tuple[int, int] = (0, 0),
 ) -> dict[str, Any]:
-    """``calibration.yaml``: the true chain and cameras, the ``imu:`` section and a ``flight:`` record."""
+    """``calibration.yaml``: the true chain and cameras, the ``imu:`` section and a ``flight:`` record
+    (with ``flight.timing`` for a timing other than the synchronized default)."""
     locked = bool(np.ptp(truth.theta, axis=0).max() == 0.0)
     d = cal.to_dict()
     d["imu"] = imu.to_dict()
@@ -161,6 +295,12 @@ def _calibration_yaml(
             "joints": JOINT_TOPIC,
         },
     }
+    if timing is not None and not timing.is_default:
+        d["flight"]["timing"] = {
+            **timing.to_dict(),
+            "images": {"static": images[0], "dynamic": images[1]},
+            "frames_file": FRAMES_NAME,
+        }
     return d
 
 
@@ -189,6 +329,7 @@ def write_flight(
     imu: ImuConfig | None = None,
     progress: bool = False,
     force: bool = False,
+    timing: CameraTiming | None = None,
 ) -> FlightBag:
     """Simulate, render and write a flight (see the module docstring).
 
@@ -207,6 +348,9 @@ def write_flight(
         joints, imu: gimbal motion and IMU noise (defaults of :mod:`dcc_fg.sim.trajectory`).
         progress: show a tqdm progress bar.
         force: replace a flight written earlier into ``out`` by ``simulate flight``.
+        timing: the cameras' rates, phase, time offsets and stamp jitter
+            (:class:`~dcc_fg.sim.timing.CameraTiming`; default: both at 20 Hz, synchronized). The
+            jitter is drawn from ``seed``.
     """
     if fmt not in ("ros1", "ros2"):
         raise ValueError(f"format must be ros1 or ros2, got {fmt!r}")
@@ -228,18 +372,26 @@ def write_flight(
     imu = sensor_covering(imu, truth.imu)
     cal = scaled_flight_calibration(scale)
     renderer = WorldRenderer(planes_from_world(World.around(config)), seed=seed)
-    frames = render_flight(renderer, truth, cal, T_sI, noise_sigma=noise_sigma, seed=seed + 1)
+    timing = timing or CameraTiming()
+    frames = camera_frames(truth, timing, seed)
+    images = render_frames(renderer, frames, cal, T_sI, noise_sigma=noise_sigma, seed=seed + 1)
     names = ("flight.bag" if fmt == "ros1" else "flight", "calibration.yaml", "ground_truth.tum",
              "ground_truth_joints.csv")  # fmt: skip
+    gimbal = [f for f in frames if f.camera == 1]
     with outputs:
         stage = outputs.path
-        n_frames, render_s = _write_flight_bag(stage / names[0], fmt, truth, frames, progress)
-        d = _calibration_yaml(cal, imu, truth, config, seed, scale)
+        counts, render_s = _write_flight_bag(stage / names[0], fmt, truth, frames, images, progress)
+        d = _calibration_yaml(cal, imu, truth, config, seed, scale, timing, counts)
         write_text_atomic(stage / names[1], yaml.safe_dump(d, sort_keys=False))
         write_tum(stage / names[2], truth.t_ns + START_NS, truth.T_WI, TUM_COMMENT, quaternion_decimals=12,
                   w_nonnegative=True)  # fmt: skip
-        idx = truth.index_of(truth.frame_t_ns)
-        write_joint_angles_csv(stage / names[3], truth.frame_t_ns + START_NS, truth.theta[idx])
+        write_joint_angles_csv(
+            stage / names[3],
+            np.array([START_NS + f.stamp_ns for f in gimbal], dtype=np.int64),
+            np.array([f.theta for f in gimbal]).reshape(len(gimbal), truth.theta.shape[1]),
+        )
+        if not timing.is_default:
+            write_frames_csv(stage / FRAMES_NAME, frames)
     bag_path, cal_path, gt_path, joints_path = (out / n for n in names)
     return FlightBag(
         bag=bag_path,
@@ -247,9 +399,12 @@ def write_flight(
         ground_truth=gt_path,
         joints=joints_path,
         truth=truth,
-        frames=n_frames,
-        render_ms_per_pair=1e3 * render_s / max(n_frames, 1),
+        frames=counts[0],
+        render_ms_per_pair=2e3 * render_s / max(sum(counts), 1),
         seconds=time.perf_counter() - t_start,
+        images=counts,
+        timing=timing,
+        frames_truth=None if timing.is_default else out / FRAMES_NAME,
     )
 
 

@@ -495,3 +495,27 @@ def simulate_tracks(
             d_ids, d_xy = np.zeros(0, dtype=np.int64), np.zeros((0, 2))
         frames.append(TrackFrame(int(truth.frame_t_ns[f]), s_ids, s_xy, d_ids, d_xy))
     return frames
+
+
+def truth_at(truth: FlightTruth, t_ns: IntArray) -> tuple[FloatArray, FloatArray]:
+    """Body pose ``T_WI`` (N, 4, 4) and joint angles ``theta`` (N, L, rad) at times ``t_ns`` (N,) ns
+    from the start of the flight, e.g. a camera's true exposure times.
+
+    At IMU sample times these are the stored truth samples (bit-identical to ``truth.T_WI`` and
+    ``truth.theta``); between them the analytic trajectory (:class:`BodyTrajectory`) and joint
+    motion (:class:`JointMotion`) the samples were made from. Times must lie within the flight.
+    """
+    t_ns = np.atleast_1d(np.asarray(t_ns, dtype=np.int64))
+    if t_ns.size and (t_ns.min() < truth.t_ns[0] or t_ns.max() > truth.t_ns[-1]):
+        raise ValueError("times outside the flight")
+    idx = np.minimum(np.searchsorted(truth.t_ns, t_ns), truth.t_ns.size - 1)
+    on = truth.t_ns[idx] == t_ns
+    T_WI = np.empty((t_ns.size, 4, 4))
+    theta = np.empty((t_ns.size, truth.theta.shape[1]))
+    T_WI[on], theta[on] = truth.T_WI[idx[on]], truth.theta[idx[on]]
+    off = ~on
+    if np.any(off):
+        t = t_ns[off] / NS
+        T_WI[off] = BodyTrajectory(truth.config).evaluate(t).T_WI()
+        theta[off] = truth.joints.evaluate(t, truth.config.duration)[0]
+    return T_WI, theta

@@ -55,28 +55,34 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
+import cv2
 import numpy as np
 import yaml
 from numpy.typing import NDArray
 
-from dcc_fg.io.bag_writer import write_ros1_bag, write_ros2_bag
+from dcc_fg.io.bag_writer import BagWriter, image_message, write_ros1_bag, write_ros2_bag
 from dcc_fg.io.camchain import CamchainEntry, camchain_to_yaml
 from dcc_fg.io.folders import FramePair, write_image_folder
 from dcc_fg.io.output_set import OutputSet
 from dcc_fg.io.outputs import write_text_atomic
 from dcc_fg.model import GimbalCalibration
+from dcc_fg.sim.calibration_motion import ContinuousMotion, MotionLimits, corners_visible
 from dcc_fg.sim.calibration_scene import SceneConfig, SimulatedCalibration, simulate_calibration
 from dcc_fg.sim.mechanism_family import FamilyMember, achieved_spread, family_member, simulate_member
-from dcc_fg.sim.render import RenderConfig, aprilgrid_view_flip, make_texture, render_view
+from dcc_fg.sim.render import BoardTexture, RenderConfig, aprilgrid_view_flip, make_texture, render_view
+from dcc_fg.sim.timing import CameraTiming
 from dcc_fg.targets import TargetGeometry
 
 FloatArray = NDArray[np.float64]
 Format = Literal["folder", "ros1", "ros2"]
+Motion = Literal["held", "continuous"]
 
 STATIC_TOPIC = "/cam0/image_raw"
 DYNAMIC_TOPIC = "/cam1/image_raw"
 DYNAMIC_STAMP_OFFSET_NS = 500_000  # 0.5 ms
 DATA_NAMES = {"folder": "images", "ros1": "images.bag", "ros2": "images_bag"}
+#: Stamps and exposure times of a continuous recording are this plus the recording's time (ns).
+CONTINUOUS_T0_NS = 1_000_000_000
 
 
 def default_target(kind: str) -> TargetGeometry:
@@ -110,8 +116,10 @@ class RenderedCalibration:
             corner ids of ``sim.config.target`` in the unflipped board pose).
         data: the image folder / bag written.
         camchain, target, gimbal, ground_truth: the files written.
-        T_st: (K, 4, 4) the rendered (true) target poses in the static camera.
+        T_st: (K, 4, 4) the rendered (true) target poses in the static camera (held: per snapshot;
+            continuous: per static image, at its true exposure time).
         render_time_s: wall time of rendering and writing the images.
+        images: continuous motion only: images written per camera (static, gimbal).
     """
 
     sim: SimulatedCalibration
@@ -122,6 +130,7 @@ class RenderedCalibration:
     ground_truth: Path
     T_st: FloatArray
     render_time_s: float
+    images: tuple[int, int] | None = None
 
 
 def _rendered_poses(sim: SimulatedCalibration) -> FloatArray:
@@ -176,6 +185,11 @@ class CalibrationSimSpec:
         storage: ROS2 storage plugin.
         random_mechanism: seed of a member of the randomized mechanism family
             (:func:`~dcc_fg.sim.mechanism_family.family_member`), None for the pinned scene.
+        motion: ``held`` (snapshots, today's data sets) or ``continuous`` (the board and the gimbal
+            move through the snapshots while both cameras record, :mod:`dcc_fg.sim.calibration_motion`).
+        timing: the cameras' rates, phase, time offsets and stamp jitter
+            (:class:`~dcc_fg.sim.timing.CameraTiming`); only ``continuous`` accepts a non-default one.
+        limits: peak rates of the continuous motion.
     """
 
     target: str = "checkerboard"
@@ -186,6 +200,9 @@ class CalibrationSimSpec:
     render: RenderConfig = field(default_factory=RenderConfig)
     storage: Literal["sqlite3", "mcap"] = "sqlite3"
     random_mechanism: int | None = None
+    motion: Motion = "held"
+    timing: CameraTiming = field(default_factory=CameraTiming)
+    limits: MotionLimits = field(default_factory=MotionLimits)
 
 
 def _write_images(data: Path, frames: Iterator[FramePair], spec: CalibrationSimSpec) -> None:
@@ -245,6 +262,147 @@ def _ground_truth_dict(
     }
 
 
+@dataclass(frozen=True)
+class ContinuousImage:
+    """One image of a continuous recording: ``camera`` 0 (static) or 1 (gimbal), header stamp and
+    true exposure time (ns, with :data:`CONTINUOUS_T0_NS`), and the truth at the exposure: joint
+    angles ``theta`` (L,), ``T_st`` and ``T_ds`` (4, 4), and whether every corner is in view."""
+
+    camera: int
+    stamp_ns: int
+    exposure_ns: int
+    theta: FloatArray
+    T_st: FloatArray
+    T_ds: FloatArray
+    visible: bool = True
+
+
+def continuous_images(
+    sim: SimulatedCalibration, T_st: FloatArray, spec: CalibrationSimSpec
+) -> tuple[ContinuousMotion, list[ContinuousImage]]:
+    """The motion through the snapshots and both cameras' images with their truth, in exposure order
+    (static first on ties); stamp jitter drawn from ``spec.seed``."""
+    tg = sim.config.target
+    motion = ContinuousMotion(T_st, sim.joints_calibration, tg.points.mean(axis=0), spec.limits)
+    streams = spec.timing.streams(int(round(motion.duration * 1e9)), np.random.default_rng([spec.seed, 15]))
+    cams = (sim.truth.static_camera, sim.truth.dynamic_camera)
+    assert cams[0] is not None and cams[1] is not None
+    images = []
+    for st in streams:
+        T, theta = motion.evaluate(st.exposure_ns / 1e9)
+        for k in range(len(st)):
+            T_ds = sim.truth.T_ds(theta[k])
+            T_ct = T[k] if st.camera == 0 else T_ds @ T[k]
+            images.append(
+                ContinuousImage(
+                    st.camera,
+                    CONTINUOUS_T0_NS + int(st.stamp_ns[k]),
+                    CONTINUOUS_T0_NS + int(st.exposure_ns[k]),
+                    theta[k],
+                    T[k],
+                    T_ds,
+                    corners_visible(cams[st.camera], T_ct, tg.points),
+                )
+            )
+    images.sort(key=lambda im: (im.exposure_ns, im.camera))
+    return motion, images
+
+
+def _render_continuous(
+    sim: SimulatedCalibration, images: list[ContinuousImage], render: RenderConfig, rng: np.random.Generator
+) -> Iterator[NDArray[np.uint8]]:
+    cams = (sim.truth.static_camera, sim.truth.dynamic_camera)
+    assert cams[0] is not None and cams[1] is not None
+    texture: BoardTexture = make_texture(sim.config.target, render.texel_m)
+    for im in images:
+        T_ct = im.T_st if im.camera == 0 else im.T_ds @ im.T_st
+        yield render_view(cams[im.camera], T_ct, texture, render, rng)
+
+
+def _write_continuous(
+    data: Path, images: list[ContinuousImage], rendered: Iterator[NDArray[np.uint8]], spec: CalibrationSimSpec
+) -> None:
+    """The images of a continuous recording: ``cam0/<stamp>.png`` and ``cam1/<stamp>.png`` (folder) or
+    a bag with record time = true exposure time and header stamp = the camera's stamp."""
+    topics, frame_ids, dirs = (STATIC_TOPIC, DYNAMIC_TOPIC), ("cam0", "cam1"), ("cam0", "cam1")
+    if spec.fmt == "folder":
+        for c in (0, 1):
+            stamps = [im.stamp_ns for im in images if im.camera == c]
+            if len(set(stamps)) != len(stamps):
+                raise ValueError(
+                    f"--stamp-jitter {spec.timing.stamp_jitter} s gives two {frame_ids[c]} images the same stamp: "
+                    "an image folder cannot hold both (use a bag format or less jitter)"
+                )
+        for d in dirs:
+            (data / d).mkdir(parents=True, exist_ok=True)
+        for im, img in zip(images, rendered, strict=True):
+            path = data / dirs[im.camera] / f"{im.stamp_ns}.png"
+            if not cv2.imwrite(str(path), img):
+                raise ValueError(f"{path}: could not write image")
+        return
+    with BagWriter(data, 1 if spec.fmt == "ros1" else 2, spec.storage, overwrite=False) as bag:
+        for im, img in zip(images, rendered, strict=True):
+            msgtype, msg = image_message(bag.typestore, img, im.stamp_ns, frame_ids[im.camera])
+            bag.write(topics[im.camera], msgtype, im.exposure_ns, msg)
+
+
+def _image_truth(im: ContinuousImage) -> dict[str, Any]:
+    return {
+        "stamp_ns": im.stamp_ns,
+        "exposure_ns": im.exposure_ns,
+        "theta": [float(x) for x in im.theta],
+        "T_st": _matrix(im.T_st),
+        "T_ds": _matrix(im.T_ds),
+        "visible": im.visible,
+    }
+
+
+def _continuous_truth(
+    sim: SimulatedCalibration, T_st: FloatArray, motion: ContinuousMotion, images: list[ContinuousImage],
+    spec: CalibrationSimSpec,
+) -> dict[str, Any]:  # fmt: skip
+    """The ``motion``, ``images`` and ``snapshots`` entries of a continuous recording's ground truth."""
+    static = [im for im in images if im.camera == 0]
+    dynamic = [im for im in images if im.camera == 1]
+    d_stamps = np.array([im.stamp_ns for im in dynamic], dtype=np.int64)
+    snapshots = []
+    for im in static:
+        partner = None
+        if d_stamps.size:
+            j = int(np.argmin(np.abs(d_stamps - im.stamp_ns)))
+            partner = int(d_stamps[j])
+        snapshots.append(
+            {
+                "timestamp_ns": im.stamp_ns,
+                "dynamic_timestamp_ns": partner,
+                "exposure_ns": im.exposure_ns,
+                "theta": [float(x) for x in im.theta],
+                "theta_guess": [],
+                "T_ds": _matrix(im.T_ds),
+                "T_st": _matrix(im.T_st),
+            }
+        )
+    return {
+        "motion": {
+            "mode": "continuous",
+            "timing": spec.timing.to_dict(),
+            "t0_ns": CONTINUOUS_T0_NS,
+            "duration_s": motion.duration,
+            "limits": spec.limits.to_dict(),
+            "waypoints": [
+                {
+                    "exposure_ns": CONTINUOUS_T0_NS + int(round(t * 1e9)),
+                    "theta": [float(x) for x in sim.joints_calibration[k]],
+                    "T_st": _matrix(T_st[k]),
+                }
+                for k, t in enumerate(motion.t_waypoints)
+            ],
+        },
+        "images": {"static": [_image_truth(im) for im in static], "dynamic": [_image_truth(im) for im in dynamic]},
+        "snapshots": snapshots,
+    }
+
+
 def write_calibration_dataset(
     out: str | Path, spec: CalibrationSimSpec | None = None, force: bool = False
 ) -> RenderedCalibration:
@@ -270,6 +428,17 @@ def write_calibration_dataset(
         raise ValueError(f"--format must be folder, ros1 or ros2, got '{spec.fmt}'")
     if spec.n_snapshots < 1:
         raise ValueError(f"--snapshots must be >= 1, got {spec.n_snapshots}")
+    if spec.motion not in ("held", "continuous"):
+        raise ValueError(f"--motion must be held or continuous, got '{spec.motion}'")
+    if spec.motion == "held" and not spec.timing.is_default:
+        raise ValueError(
+            "--rates, --phase, --time-offsets and --stamp-jitter need --motion continuous (held snapshots are "
+            "recorded as image pairs)"
+        )
+    if spec.motion == "continuous" and spec.n_snapshots < 2:
+        raise ValueError(
+            f"--motion continuous moves between snapshots: --snapshots must be >= 2, got {spec.n_snapshots}"
+        )
     out = Path(out)
     outputs = OutputSet(
         out,
@@ -289,11 +458,17 @@ def write_calibration_dataset(
         sim = simulate_calibration(spec.seed, scene_config(tg, spec.n_snapshots, n_joints))
     T_st = _rendered_poses(sim)
     rng = np.random.default_rng([spec.seed, 1])  # image noise, independent of the scene's stream
+    continuous = None
+    if spec.motion == "continuous":
+        continuous = continuous_images(sim, T_st, spec)
     with outputs:
         stage = outputs.path
         data = stage / DATA_NAMES[spec.fmt]
         t0 = time.perf_counter()
-        _write_images(data, _frames(sim, T_st, spec.render, rng), spec)
+        if continuous is None:
+            _write_images(data, _frames(sim, T_st, spec.render, rng), spec)
+        else:
+            _write_continuous(data, continuous[1], _render_continuous(sim, continuous[1], spec.render, rng), spec)
         render_time = time.perf_counter() - t0
 
         cams = (sim.truth.static_camera, sim.truth.dynamic_camera)
@@ -304,11 +479,21 @@ def write_calibration_dataset(
         write_text_atomic(paths["target"], yaml.safe_dump(tg.to_kalibr(), sort_keys=False))
         write_text_atomic(paths["gimbal"], yaml.safe_dump(_kinematics_dict(sim.initial), sort_keys=False))
         truth = _ground_truth_dict(sim, T_st, spec, data, member)
-        write_text_atomic(paths["ground_truth"], yaml.safe_dump(truth, sort_keys=False))
+        if continuous is None:
+            write_text_atomic(paths["ground_truth"], yaml.safe_dump(truth, sort_keys=False))
+        else:
+            truth.update(_continuous_truth(sim, T_st, *continuous, spec))
+            text = yaml.dump(truth, Dumper=getattr(yaml, "CSafeDumper", yaml.SafeDumper), sort_keys=False)
+            write_text_atomic(paths["ground_truth"], text)
     final = {name: out / p.name for name, p in paths.items()}
+    images = None
+    if continuous is not None:
+        static = [im for im in continuous[1] if im.camera == 0]
+        T_st = np.array([im.T_st for im in static]).reshape(-1, 4, 4)
+        images = (len(static), len(continuous[1]) - len(static))
     return RenderedCalibration(
         sim, out / data.name, final["camchain"], final["target"], final["gimbal"], final["ground_truth"], T_st,
-        render_time,
+        render_time, images,
     )  # fmt: skip
 
 
