@@ -22,6 +22,8 @@ from dcc_fg.sim.flight_bag import (
     FRAMES_NAME,
     START_NS,
     CameraFrame,
+    load_flight_calibration,
+    load_flight_timing,
     read_frames_csv,
     render_frames,
     scaled_flight_calibration,
@@ -187,6 +189,8 @@ def test_unsynchronized_flight_stamps_and_truth(unsync_flight: tuple[Path, objec
     assert tm["time_offsets_s"] == {"static": OFFSETS[0], "dynamic": OFFSETS[1]}
     assert tm["rates_hz"] == {"static": RATES[0], "dynamic": RATES[1]} and tm["phase_s"] == PHASE
     assert tm["stamp_jitter_s"] == 0.0 and "t_imu = t_cam_stamp + t_offset" in tm["convention"]
+    assert load_flight_timing(out / "calibration.yaml") == CameraTiming(RATES, PHASE, OFFSETS)
+    load_flight_calibration(out / "calibration.yaml")  # the extra record does not disturb the readers
     # ground_truth_joints.csv: keyed by the gimbal header stamps, angles at the true exposure time
     t_j, th_j = read_joint_angles_csv(out / "ground_truth_joints.csv")
     gimbal = frames["camera"] == 1
@@ -237,6 +241,7 @@ def test_default_flight_is_unchanged(tmp_path: Path) -> None:
     assert len(scan.imu_t_ns) == truth.t_ns.size
     assert not (out / FRAMES_NAME).exists()
     assert "timing" not in yaml.safe_load((out / "calibration.yaml").read_text())["flight"]
+    assert load_flight_timing(out / "calibration.yaml").is_default
     t_j, th_j = read_joint_angles_csv(out / "ground_truth_joints.csv")
     assert list(t_j) == expected
     renderer = WorldRenderer(planes_from_world(World.around(truth.config)), seed=4)
@@ -245,6 +250,26 @@ def test_default_flight_is_unchanged(tmp_path: Path) -> None:
     for (t, img_s, img_d), ((ts, a, _), (td, b, _)) in zip(legacy, got, strict=True):
         assert ts == td == t + START_NS
         assert np.array_equal(a, img_s) and np.array_equal(b, img_d)
+
+
+def test_jittered_flight_keeps_exposure_order(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """Jitter comparable to the frame period: a warning, the stamps written as drawn (some go
+    backwards) while the bag order follows the true exposure times."""
+    out = tmp_path / "fl"
+    timing = CameraTiming((20.0, 20.0), 0.0, (0.0, 0.0), 0.03)
+    with caplog.at_level(logging.WARNING, logger="dcc_fg.sim.timing"):
+        write_flight(out, "ros2", FlightConfig.short(DURATION), seed=1, scale=SCALE, timing=timing)
+    assert any("--stamp-jitter" in r.getMessage() for r in caplog.records)
+    frames = read_frames_csv(out / FRAMES_NAME)
+    for c, topic in enumerate(TOPICS):
+        stamps = [s for s, _, _ in BagTopicImages(out / "flight", topic)]
+        sel = frames["camera"] == c
+        assert stamps == list(frames["stamp_ns"][sel])  # bag order = exposure order (frames are sorted so)
+        assert np.all(np.diff(frames["exposure_ns"][sel]) > 0) and np.any(np.diff(stamps) <= 0)
+        jitter = (frames["stamp_ns"][sel] - frames["exposure_ns"][sel]) / NS
+        # ~90 draws of N(0, 30 ms): the sample std within 35 % (> 3 sigma of sqrt(1/(2n)))
+        assert abs(jitter.std() / 0.03 - 1.0) < 0.35
+    assert load_flight_timing(out / "calibration.yaml").stamp_jitter == 0.03
 
 
 # ------------------------------------------------------------------ continuous calibration recordings
@@ -323,14 +348,18 @@ def test_continuous_motion_makes_15_ms_matter(continuous_ros1: RenderedCalibrati
     assert worst > 1.5
 
 
-def test_continuous_calibration_folder(tmp_path: Path) -> None:
+@pytest.mark.parametrize("fmt", ["folder", "ros2"])
+def test_continuous_calibration_cli_formats(tmp_path: Path, fmt: str) -> None:
     out = tmp_path / "set"
     argv = ["simulate", "calibration", "--out", str(out), "--snapshots", "2", "--motion", "continuous",
-            "--rates", "3,5", "--time-offsets", "0,0.015", "--seed", "1"]  # fmt: skip
+            "--rates", "3,5", "--time-offsets", "0,0.015", "--seed", "1", "--format", fmt]  # fmt: skip
     assert main(argv) == 0
     gt = yaml.safe_load((out / "ground_truth.yaml").read_text())
-    for name, folder in (("static", "cam0"), ("dynamic", "cam1")):
-        stamps = sorted(int(p.stem) for p in (out / "images" / folder).glob("*.png"))
+    for name, folder, topic in (("static", "cam0", TOPICS[0]), ("dynamic", "cam1", TOPICS[1])):
+        if fmt == "folder":
+            stamps = sorted(int(p.stem) for p in (out / "images" / folder).glob("*.png"))
+        else:
+            stamps = [s for s, _, _ in BagTopicImages(out / "images_bag", topic)]
         assert stamps == [im["stamp_ns"] for im in gt["images"][name]] and stamps
     assert gt["motion"]["timing"]["time_offsets_s"]["dynamic"] == 0.015
 

@@ -294,7 +294,7 @@ def add_calibration_parser(sub: Any, parent: argparse.ArgumentParser) -> None:
         choices=["held", "continuous"],
         default="held",
         help="held: one image pair per snapshot, the rig held still (default); continuous: the board (up to 30 deg/s, "
-        "0.25 m/s) and the gimbal joints (up to 20 deg/s) keep moving through the snapshots while both cameras "
+        "0.4 m/s) and the gimbal joints (up to 20 deg/s) keep moving through the snapshots while both cameras "
         "record at --rates, as a hand-held recording (--snapshots >= 2 waypoints; ground_truth.yaml then holds "
         "the truth at every image's true exposure time under 'images' and the timing under 'motion')",
     )

@@ -414,3 +414,26 @@ def load_flight_calibration(path: str | Path) -> tuple[GimbalCalibration, ImuCon
     if imu is None:
         raise ValueError(f"{path}: no 'imu:' section (T_sI and IMU noise are needed for VIO)")
     return load_calibration(path), imu
+
+
+def load_flight_timing(path: str | Path) -> CameraTiming:
+    """The true camera timing of a simulated flight from its ``calibration.yaml`` (``flight.timing``;
+    the synchronized default when there is none, as for default flights and earlier versions).
+
+    For evaluation only: this is the simulation's truth, not a starting value for an estimator.
+    """
+    with Path(path).open() as f:
+        d = yaml.safe_load(f)
+    tm = (d.get("flight") or {}).get("timing") if isinstance(d, dict) else None
+    if not tm:
+        return CameraTiming()
+    try:
+        rates, offsets = tm["rates_hz"], tm["time_offsets_s"]
+        return CameraTiming(
+            (float(rates["static"]), float(rates["dynamic"])),
+            float(tm["phase_s"]),
+            (float(offsets["static"]), float(offsets["dynamic"])),
+            float(tm["stamp_jitter_s"]),
+        )
+    except (KeyError, TypeError) as exc:
+        raise ValueError(f"{path}: flight.timing is incomplete ({exc})") from None

@@ -44,6 +44,35 @@ maps points from frame b into frame a)::
         T_ds: [[...] x4]                     # true static -> dynamic camera
         T_st: [[...] x4]                     # true target -> static camera (the rendered pose)
 
+With ``--motion continuous`` (``spec.motion``, :mod:`dcc_fg.sim.calibration_motion`) the board
+and the gimbal keep moving through the snapshots (the waypoints) while each camera records at its
+own rate, phase, time offset and stamp jitter (``spec.timing``, :mod:`dcc_fg.sim.timing`; convention
+``t_true = t_stamp + t_offset``, an image exposed at true time t is stamped ``t - t_offset``). Each
+image is rendered at its true exposure time; the bag's record time is the exposure time, the
+header stamp the camera's stamp; the image folder names files by their stamps. Times are
+``CONTINUOUS_T0_NS`` (1 s) + the recording's time. ``ground_truth.yaml`` then keeps every key above
+(so :func:`load_ground_truth` reads it) and adds::
+
+    snapshots:                      # one per STATIC image (no longer per waypoint)
+      - timestamp_ns: ...           # the static image's header stamp
+        dynamic_timestamp_ns: ...   # the nearest gimbal header stamp (null if none)
+        exposure_ns: ...            # the static image's true exposure time
+        theta, T_ds, T_st: ...      # truth at that exposure time; theta_guess: []
+    motion:
+      mode: continuous
+      timing: {convention, rates_hz: {static, dynamic}, phase_s, time_offsets_s: {static, dynamic},
+               stamp_jitter_s}
+      t0_ns: 1000000000
+      duration_s: ...
+      limits: {max_target_rate_deg_s, max_target_speed_m_s, max_joint_rate_deg_s, min_segment_s}
+      waypoints: [{exposure_ns, theta, T_st}]   # the path passes through them at rest
+    images:
+      static:  [{stamp_ns, exposure_ns, theta, T_st, T_ds, visible}]   # every image, exposure order
+      dynamic: [{stamp_ns, exposure_ns, theta, T_st, T_ds, visible}]
+
+(``visible``: every corner inside that camera's image.) Held mode (the default) writes exactly the
+files described above, and refuses non-default timing.
+
 :func:`load_ground_truth` reads it back.
 """
 
