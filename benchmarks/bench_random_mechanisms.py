@@ -72,7 +72,7 @@ def member_line(r: MechanismRecord) -> str:
 def table(summaries: list[FamilySummary]) -> str:
     """The per-L verdict table."""
     head = (
-        f"{'L':>2} {'n':>3} {'global min':>10} {'healthy':>7} {'obs':>4} {'prior':>5} "
+        f"{'L':>2} {'n':>3} {'global min':>10} {'strict':>6} {'healthy':>7} {'obs':>4} {'prior':>5} "
         f"{'rot/CRB pooled':>14} {'med':>5} {'max':>5} "
         f"{'tra/CRB pooled':>14} {'med':>5} {'max':>5} {'NEES':>6} {'95% interval':>15} {'t render':>8} "
         f"{'t detect':>8} {'t auto':>6} {'t truth':>7} {'verdict':>7}"
@@ -81,7 +81,8 @@ def table(summaries: list[FamilySummary]) -> str:
     for s in summaries:
         lo, hi = s.nees_interval
         lines.append(
-            f"{s.n_joints:>2} {s.n:>3} {f'{s.successes}/{s.n}':>10} {f'{s.healthy}/{s.n}':>7} {s.n_observable:>4} "
+            f"{s.n_joints:>2} {s.n:>3} {f'{s.successes}/{s.n}':>10} {f'{s.strict_successes}/{s.n}':>6} "
+            f"{f'{s.healthy}/{s.n}':>7} {s.n_observable:>4} "
             f"{s.n_held_by_prior:>5} "
             f"{_fmt(s.rotation_ratio_pooled):>14} {_fmt(s.rotation_ratio_median):>5} {_fmt(s.rotation_ratio_max):>5} "
             f"{_fmt(s.translation_ratio_pooled):>14} {_fmt(s.translation_ratio_median):>5} "

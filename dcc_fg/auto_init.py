@@ -31,10 +31,12 @@ Then, for any L, the translations ``t_sb``, ``d_l, a_l`` (l < L) and ``t_ed`` en
 
 L = 3: three non-parallel axes span all rotations, so the rotations alone do not determine
 the axes (no closed form here). For given axes ``w_1`` (in s), ``b_3`` (in d) and twists the
-joint angles follow from the rotations by closed-form IK and the translations from the linear
-solve above, so only these 6 parameters are searched, on the translation misfit that remains
+joint angles follow from the rotations by closed-form IK (each snapshot on the theta_2 branch
+whose lever arms fit: a joint-2 range that crosses the coplanar-axes singularity at 0 or pi
+needs both branches) and the translations from the linear solve above, so only these 6
+parameters are searched, on the translation misfit that remains
 (variable projection, :class:`_ThreeJointProjection`): Levenberg-Marquardt from random starts,
-then the pose-level fit (:func:`dcc_fg.init.pose_level_refine`) from the best minima.
+then the pose-level fit (:func:`dcc_fg.init.pose_level_refine`) from the best distinct minima.
 
 Everything is refined afterwards: the pose-level LM fit, then the corner-level graph.
 Frames and conventions: docs/architecture.md.
@@ -67,6 +69,7 @@ N_L3_KEEP = 3  # L = 3: best axis-search minima carried on to the pose-level fit
 CANDIDATE_MAX_ITERATIONS = 40
 CANDIDATE_REL_TOL = 1e-6
 SAME_MINIMUM = 1e-4  # rad, m: candidates predicting the same T_ds this closely are one start
+SAME_AXIS_MINIMUM = 1e-5  # L = 3: axis-search minima whose costs agree this closely (relative) are one
 
 
 def pnp_T_ds(data: CalibrationDataset) -> FloatArray:
@@ -202,12 +205,10 @@ def _rotation_two_joints(R_sd: FloatArray) -> tuple[FloatArray, FloatArray, floa
     return _pair_from_axis(R_sd, U[int(np.argmin(cost))])
 
 
-def _translation_fit(
-    T_sd: FloatArray, R_sb: FloatArray, thetas: FloatArray, alphas: FloatArray
-) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
-    """Linear least squares for ``t_sb`` (perpendicular to joint 1's axis: ``tau_s.tz = 0``),
-    ``(d_l, a_l)`` for l < L and ``t_ed``, given all rotations (``T_sd`` (K, 4, 4), ``R_sb``, joint
-    angles (K, L) and twists, rad). Returns (t_sb, da (L-1, 2), t_ed, residual (3K,) in m)."""
+def _translation_design(R_sb: FloatArray, thetas: FloatArray, alphas: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Design of the linear translation model of :func:`_translation_fit`: ``(A (K, 3, n), P (3, 2))``
+    with ``t_sd_i = A_i x``, ``x = [t_sb in the plane normal to joint 1's axis (2), (d_l, a_l) for
+    l < L, t_ed (3)]`` and ``P`` the basis of that plane."""
     K, L = thetas.shape
     w1 = R_sb[:, 2]
     # basis of the plane perpendicular to w1
@@ -220,9 +221,61 @@ def _translation_fit(
         A[:, :, 2 + 2 * lnk] = G[:, lnk, :, 2]  # d_l along z_{l-1}
         A[:, :, 3 + 2 * lnk] = G[:, lnk, :, 0]  # a_l along x_l
     A[:, :, n - 3 :] = G[:, L - 1]
+    return A, P
+
+
+def _translation_fit(
+    T_sd: FloatArray, R_sb: FloatArray, thetas: FloatArray, alphas: FloatArray
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    """Linear least squares for ``t_sb`` (perpendicular to joint 1's axis: ``tau_s.tz = 0``),
+    ``(d_l, a_l)`` for l < L and ``t_ed``, given all rotations (``T_sd`` (K, 4, 4), ``R_sb``, joint
+    angles (K, L) and twists, rad). Returns (t_sb, da (L-1, 2), t_ed, residual (3K,) in m)."""
+    K, L = thetas.shape
+    A, P = _translation_design(R_sb, thetas, alphas)
+    n = A.shape[2]
     A2, b = A.reshape(3 * K, n), T_sd[:, :3, 3].ravel()
     x = np.linalg.lstsq(A2, b, rcond=None)[0]
     return P @ x[0:2], x[2 : 2 + 2 * (L - 1)].reshape(L - 1, 2), x[n - 3 :], A2 @ x - b
+
+
+def _branch_translation_fit(
+    T_sd: FloatArray, R_sb: FloatArray, branches: tuple[FloatArray, FloatArray], alphas: FloatArray
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
+    """:func:`_translation_fit` with each snapshot's theta_2 branch chosen by the fit (L = 3).
+
+    The two closed-form IK branches (``theta_2`` and the mirror solution) reproduce the same
+    rotation; only the lever arms tell them apart. A joint-2 range that crosses 0 or pi (where the
+    three axes are coplanar) needs both. Alternation from the better single branch: fit the
+    translations, give each snapshot the branch whose translation misfit is smaller under that fit,
+    refit, until no snapshot changes (at most 4 rounds).
+
+    Returns (t_sb, da, t_ed, residual (3K,) in m, joint angles (K, 3) of the chosen branches).
+    """
+    target = T_sd[:, :3, 3]
+    designs = [_translation_design(R_sb, th, alphas)[0] for th in branches]
+    P = _translation_design(R_sb, branches[0][:1], alphas)[1]
+
+    def solve(A: FloatArray) -> tuple[FloatArray, FloatArray]:
+        A2 = A.reshape(-1, A.shape[2])
+        x = np.linalg.lstsq(A2, target.ravel(), rcond=None)[0]
+        return x, A2 @ x - target.ravel()
+
+    solutions = [solve(A) for A in designs]
+    k = int(np.argmin([float(r @ r) for _, r in solutions]))
+    choice = np.full(target.shape[0], k)
+    x, r = solutions[k]
+    for _ in range(4):
+        miss = [np.sum((A @ x - target) ** 2, axis=1) for A in designs]
+        new_choice = (miss[1] < miss[0]).astype(int)
+        if np.array_equal(new_choice, choice):
+            break
+        x_new, r_new = solve(np.where(new_choice[:, None, None] == 1, designs[1], designs[0]))
+        if float(r_new @ r_new) >= float(r @ r):
+            break
+        choice, x, r = new_choice, x_new, r_new
+    thetas = np.where(choice[:, None] == 1, branches[1], branches[0])
+    n, L = x.size, thetas.shape[1]
+    return P @ x[0:2], x[2 : 2 + 2 * (L - 1)].reshape(L - 1, 2), x[n - 3 :], r, thetas
 
 
 def _translation_solve(
@@ -360,8 +413,10 @@ class _ThreeJointProjection:
         """(R_bs, R_ed, angles (K, 3), whitened residual, translation solution (t_sb, da, t_ed) stacked)."""
         R_bs, R_ed = base_rotation(w1), base_rotation(b3)  # R_ed maps b3 (in d) onto the e z axis
         al = np.array([alphas[0], alphas[1], 0.0])
-        thetas, misfit = rotation_ik_three_joints(R_bs @ self.R_sd @ R_ed.T, al)
-        t_sb, da, t_ed, r_t = _translation_fit(self.T_sd, R_bs.T, thetas, al)
+        Q = R_bs @ self.R_sd @ R_ed.T
+        thetas_p, misfit = rotation_ik_three_joints(Q, al, 1.0)
+        thetas_m, _ = rotation_ik_three_joints(Q, al, -1.0)
+        t_sb, da, t_ed, r_t, thetas = _branch_translation_fit(self.T_sd, R_bs.T, (thetas_p, thetas_m), al)
         r = np.concatenate([r_t / 1e-3, misfit.ravel() / 1e-3])
         return R_bs, R_ed, thetas, r, np.concatenate([t_sb, da.ravel(), t_ed])
 
@@ -390,7 +445,8 @@ def three_joint_candidates(
 ) -> list[tuple[FloatArray, FloatArray, float]]:
     """L = 3: the 6-parameter axis search of :class:`_ThreeJointProjection` (Levenberg-Marquardt)
     from ``n_starts`` random axes and twists, then the full pose-level fit from its ``N_L3_KEEP``
-    best minima, lowest fit RMS first: [(kin, joint angles (K, 3), fit RMS)]."""
+    best distinct minima (costs within ``SAME_AXIS_MINIMUM`` relative count once: the same minimum
+    reached from several starts), lowest fit RMS first: [(kin, joint angles (K, 3), fit RMS)]."""
     proj = _ThreeJointProjection(T_ds)
     rng = np.random.default_rng(seed)
     minima: list[tuple[float, FloatArray, FloatArray, FloatArray]] = []
@@ -403,8 +459,12 @@ def three_joint_candidates(
         w1, b3 = _unit_offset(w1_0, sol.x[0:2]), _unit_offset(b3_0, sol.x[2:4])
         minima.append((float(np.mean(sol.fun**2)), w1, b3, sol.x[4:6]))
     minima.sort(key=lambda m: m[0])
+    kept: list[tuple[float, FloatArray, FloatArray, FloatArray]] = []
+    for m in minima:  # the same minimum reached from several starts (or its mirror image) counts once
+        if all(abs(m[0] - k[0]) > SAME_AXIS_MINIMUM * max(k[0], 1e-12) for k in kept):
+            kept.append(m)
     out = []
-    for _, w1, b3, alphas in minima[:N_L3_KEEP]:
+    for _, w1, b3, alphas in kept[:N_L3_KEEP]:
         kin0, th0 = proj.kin(w1, b3, alphas)
         out.append(
             pose_level_refine(
