@@ -78,6 +78,7 @@ def starts_of(
     initial: GimbalCalibration | None,
     automatic: bool,
     report: list[dict[str, Any]],
+    initial_name: str = "gimbal.yaml",
 ) -> list[Start]:
     """The starts: ``initial`` (with the snapshots' own joint guesses), then the automatic candidates
     (with their joint angles as the guesses, except in ``encoders`` mode). When ``initial`` is given,
@@ -85,7 +86,7 @@ def starts_of(
     in ``report`` and the search goes on from ``initial`` alone."""
     starts = []
     if initial is not None:
-        starts.append(Start("gimbal.yaml", initial, data))
+        starts.append(Start(initial_name, initial, data))
     if automatic:
         try:
             candidates = auto_initial_candidates(data, n_joints)
@@ -146,6 +147,7 @@ def calibrate_global(
     options: CalibrationOptions | None = None,
     initial: GimbalCalibration | None = None,
     automatic: bool = True,
+    initial_name: str = "gimbal.yaml",
 ) -> CalibrationResult:
     """Calibration that searches for the global minimum (module docstring).
 
@@ -155,6 +157,7 @@ def calibrate_global(
         options: solver options (mode ``encoderless`` or ``encoders``).
         initial: hand-measured kinematics (``--gimbal``), one more start; None: automatic starts only.
         automatic: add the automatic initialization's starts (always, when ``initial`` is None).
+        initial_name: how ``initial`` is named in the report (default ``gimbal.yaml``).
 
     Returns:
         the solution with the lowest data cost; ``extra["global"]`` lists every start (name,
@@ -167,7 +170,7 @@ def calibrate_global(
     if opt.mode == "validate":
         raise ValueError("calibrate_global calibrates; validate with dcc_fg.calibrate.calibrate(mode='validate')")
     report: list[dict[str, Any]] = []
-    starts = starts_of(data, n_joints, opt.mode, initial, automatic or initial is None, report)
+    starts = starts_of(data, n_joints, opt.mode, initial, automatic or initial is None, report, initial_name)
     results: list[tuple[Start, CalibrationResult]] = []
     first_error: Exception | None = None
     for start in starts:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
@@ -188,6 +189,25 @@ def demo_table(s: dict[str, Any]) -> str:
     return "\n\n".join(table(s) for table in tables)
 
 
+def sync_summary(inp: dict[str, Any], sync: dict[str, Any], offset: dict[str, Any]) -> str:
+    """Lines of an unsynchronized (``--sync interpolate``) run: frames, what happened to the gimbal frames,
+    the inter-camera offset (ms) with its 1-sigma."""
+    rejected = ", ".join(f"{v} {k}" for k, v in sync["rejected"].items()) or "none"
+    shift = sync["compensation_px"]["median"]
+    std = offset["std_s"]
+    how = "given" if not offset["estimated"] else (
+        f"estimated, 1-sigma {std * 1e3:.3g} ms" if offset["determined"] and math.isfinite(std)
+        else "NOT determined by the data (too little motion), used as given")  # fmt: skip
+    return "\n".join([
+        f"input ({inp['layout']}): {inp['frames_static']} cam0 and {inp['frames_dynamic']} cam1 frames; "
+        f"{sync['dynamic_frames']} gimbal frames considered",
+        f"snapshots: {sync['used']} used ({sync['exact']} with a static frame at the same instant, "
+        f"{sync['compensated']} with the static corners interpolated, median shift "
+        f"{'-' if shift is None else f'{shift:.2f}'} px); rejected: {rejected}",
+        f"inter-camera time offset t_d - t_s: {offset['delta_s'] * 1e3:.3f} ms ({how})",
+    ])  # fmt: skip
+
+
 def run_summary_table(stats: dict[str, Any]) -> str:
     """End-of-run summary of ``dcc-fg calibrate`` / ``validate`` (from the run's ``statistics``).
 
@@ -198,7 +218,10 @@ def run_summary_table(stats: dict[str, Any]) -> str:
     """
     lines = []
     inp = stats.get("input")
-    if inp:
+    sync, offset = stats.get("sync"), stats.get("time_offset")
+    if inp and sync and offset:
+        lines.append(sync_summary(inp, sync, offset))
+    elif inp:
         lines.append(
             f"input ({inp['layout']}): {inp['pairs']} image pairs; unpaired frames: {inp['unpaired_static']} cam0, "
             f"{inp['unpaired_dynamic']} cam1; target found in {inp['detected_static']} cam0 and "

@@ -34,7 +34,9 @@ from dcc_fg.io.outputs import plain, write_text_atomic
 from dcc_fg.model import GimbalCalibration, load_calibration
 from dcc_fg.plots.output import write_calibration_outputs
 from dcc_fg.report import parameter_table, run_summary_table
-from dcc_fg.sources.dataset import load_dataset
+from dcc_fg.sources.dataset import load_dataset, load_streams
+from dcc_fg.sync import SyncOptions
+from dcc_fg.time_offset import MAX_SNAPSHOTS, calibrate_streams
 from dcc_fg.util.config import ConfigError
 from dcc_fg.util.provenance import run_record
 
@@ -49,16 +51,40 @@ class ReaderOptions:
     ``sync_tolerance_ms``: largest time difference (milliseconds) between a static and a dynamic
     image of one snapshot; ``min_common_points``: a snapshot is used only if both cameras see at least
     this many of the same target corners; ``corners``: ``all`` detected corners of each camera or only
-    the ``common`` ones both cameras see.
+    the ``common`` ones both cameras see. ``sync``: ``tolerance`` pairs images whose stamps agree within
+    ``sync_tolerance_ms`` (synchronized cameras, a rig held still); ``interpolate`` detects every frame
+    of each camera and gives each gimbal frame the static camera's corners interpolated to its exposure
+    time (:mod:`dcc_fg.sync`; unsynchronized cameras, continuous motion), with the inter-camera offset
+    ``t_d - t_s`` from ``time_offsets`` (T_S, T_D in s, ``t_imu = t_stamp + t_offset``) estimated
+    around them (:mod:`dcc_fg.time_offset`) unless ``fix_time_offsets``; at most ``max_snapshots``
+    gimbal frames, evenly spaced, are used.
     """
 
     sync_tolerance_ms: float = 5.0
     min_common_points: int = MIN_COMMON_POINTS
     corners: str = "all"
+    sync: str = "tolerance"
+    time_offsets: tuple[float, float] | None = None
+    fix_time_offsets: bool = False
+    max_snapshots: int = MAX_SNAPSHOTS
 
     def __post_init__(self) -> None:
         if self.corners not in ("all", "common"):
             raise ValueError(f"corners must be all or common, got {self.corners!r}")
+        if self.sync not in ("tolerance", "interpolate"):
+            raise ValueError(f"sync must be tolerance or interpolate, got {self.sync!r}")
+        if self.time_offsets is not None:
+            if len(self.time_offsets) != 2 or not all(np.isfinite(x) and abs(x) < 0.5 for x in self.time_offsets):
+                raise ValueError(
+                    f"time_offsets must be two finite offsets T_S,T_D in seconds with |offset| < 0.5, got "
+                    f"{self.time_offsets!r}"
+                )
+            if self.sync != "interpolate":
+                raise ValueError("time_offsets need sync interpolate (--sync interpolate)")
+        if self.fix_time_offsets and self.time_offsets is None:
+            raise ValueError("fix_time_offsets needs the offsets (--time-offsets T_S,T_D)")
+        if self.max_snapshots < 1:
+            raise ValueError(f"max_snapshots must be at least 1, got {self.max_snapshots}")
         if not (np.isfinite(self.sync_tolerance_ms) and self.sync_tolerance_ms > 0):
             raise ValueError(f"sync_tolerance_ms must be a positive number of ms, got {self.sync_tolerance_ms}")
         if self.min_common_points < 1:
@@ -295,6 +321,55 @@ def solve_calibration(
     return calibrate_global(data, initial.n_joints, solver, initial=initial, automatic=init.search == "global")
 
 
+def calibrate_unsynchronized(
+    inputs: CalibrationInputs, config: CalibrateConfig, progress: bool, report: dict[str, Any]
+) -> tuple[CalibrationResult, CalibrationDataset]:
+    """``--sync interpolate``: every frame of each camera detected on its own, each gimbal frame paired
+    with the static corners interpolated to its exposure time, the inter-camera offset estimated (or
+    held at ``--time-offsets`` with ``--fix-time-offsets``). ``report`` gets ``sync`` (what happened to
+    the gimbal frames) and ``time_offset`` (estimate, 1-sigma, the search); both also go into the
+    calibration's statistics (summary.json)."""
+    reader = config.reader
+    if config.solver.mode != "encoderless":
+        raise ConfigError("--sync interpolate calibrates encoderless (joint readings are not interpolated yet)")
+    if inputs.target is None:
+        raise ValueError(f"{inputs.data}: --sync interpolate detects the target in the images; give --target")
+    initial = load_calibration(inputs.gimbal) if inputs.gimbal and config.init.method != "auto" else None
+    if initial is None and config.init.joints is None:
+        raise ValueError("--joints L is required when no --gimbal G.yaml is given (automatic initialization)")
+    n_joints = initial.n_joints if initial is not None else int(config.init.joints)  # type: ignore[arg-type]
+    streams = load_streams(inputs.data, inputs.camchain, inputs.target, progress=progress)
+    t_s, t_d = reader.time_offsets if reader.time_offsets is not None else (0.0, 0.0)
+    out = calibrate_streams(
+        streams.static,
+        streams.dynamic,
+        (streams.entries[0].camera, streams.entries[1].camera),
+        streams.target.points,
+        n_joints,
+        config.solver,
+        initial=initial,
+        delta_s=t_d - t_s,
+        estimate=not reader.fix_time_offsets,
+        sync=SyncOptions(min_common_points=reader.min_common_points),
+        max_snapshots=reader.max_snapshots,
+        source=str(inputs.data),
+    )
+    data = common_corners(out.data) if reader.corners == "common" else out.data
+    report.update(
+        layout="unsynchronized streams",
+        min_common_points=reader.min_common_points,
+        corners=reader.corners,
+        frames_static=int(streams.static.stamps_ns.size),
+        frames_dynamic=int(streams.dynamic.stamps_ns.size),
+        kept=len(out.data.snapshots),
+        sync=out.sync.to_dict(),
+        time_offset={**out.offset.to_dict(), "convention": "t_imu = t_stamp + t_offset; delta = t_d - t_s"},
+    )
+    out.result.calibration.statistics["time_offset"] = report["time_offset"]
+    out.result.calibration.statistics["sync"] = report["sync"]
+    return out.result, data
+
+
 def run_calibrate(
     inputs: CalibrationInputs,
     out: Path,
@@ -312,9 +387,12 @@ def run_calibrate(
     outputs = OutputSet(out, "calibrate", inputs.by_option(config_file))
     with outputs:
         report: dict[str, Any] = {}
-        data = load_calibration_data(inputs, inputs.camchain, config.reader, progress, report)
-        initial, data = initial_values(inputs, config.init, config.solver.mode, data)
-        result = solve_calibration(initial, data, config.init, config.solver)
+        if config.reader.sync == "interpolate":
+            result, data = calibrate_unsynchronized(inputs, config, progress, report)
+        else:
+            data = load_calibration_data(inputs, inputs.camchain, config.reader, progress, report)
+            initial, data = initial_values(inputs, config.init, config.solver.mode, data)
+            result = solve_calibration(initial, data, config.init, config.solver)
         provenance = run_record("calibrate", inputs.paths(), config)
         paths = write_calibration_set(outputs, result, data, report, provenance, config)
     print_written(result, paths, quiet)
@@ -364,6 +442,18 @@ def add_reader_flags(p: argparse.ArgumentParser) -> None:
     opt(p, "--sync-tolerance", "reader.sync_tolerance_ms", type=float, metavar="MS", help="largest time difference "
         "between a static and a dynamic image of one snapshot, milliseconds; frames without a partner are reported "
         "(default 5)")  # fmt: skip
+    opt(p, "--sync", "reader.sync", choices=["tolerance", "interpolate"], help="tolerance (default): pair images "
+        "whose stamps agree within --sync-tolerance (synchronized cameras or a rig held still); interpolate: detect "
+        "every frame of each camera and give each gimbal frame the static camera's corners interpolated to its "
+        "exposure time (unsynchronized cameras, continuous motion), estimating the inter-camera offset")  # fmt: skip
+    opt(p, "--time-offsets", "reader.time_offsets", type=common.float_pair, metavar="T_S,T_D", help="each camera's "
+        "time offset in seconds (t_imu = t_stamp + t_offset, as Kalibr's timeshift_cam_imu and OpenVINS); only "
+        "T_D - T_S matters here: the centre of the offset search (--sync interpolate), or the offset used with "
+        "--fix-time-offsets")  # fmt: skip
+    opt(p, "--fix-time-offsets", "reader.fix_time_offsets", action="store_true",
+        help="use --time-offsets as given instead of estimating the inter-camera offset")  # fmt: skip
+    opt(p, "--max-snapshots", "reader.max_snapshots", type=int, metavar="N", help="--sync interpolate: use at most "
+        f"N gimbal frames, evenly spaced in time (default {MAX_SNAPSHOTS})")  # fmt: skip
     opt(p, "--min-common-points", "reader.min_common_points", type=int, metavar="N",
         help="use a snapshot only if both cameras see at least N of the same target corners (default 8)")  # fmt: skip
     opt(p, "--corners", "reader.corners", choices=["all", "common"], help="all: every detected corner of each camera "

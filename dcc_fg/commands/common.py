@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import math
 import sys
 from typing import Any, TypeVar
 
@@ -110,3 +111,15 @@ def judge_health(report: HealthReport, accept: bool) -> dict[str, Any]:
             log.warning("unhealthy %s accepted (--accept-unhealthy): %s: %s%s", report.subject, check.name,
                         check.message, hint)  # fmt: skip
     return report.to_dict()
+
+
+def float_pair(text: str) -> tuple[float, float]:
+    """argparse ``type`` for ``A,B``: two finite numbers (the checks of the option itself follow)."""
+    parts = text.split(",")
+    try:
+        pair = tuple(float(x) for x in parts)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expects two numbers A,B, got {text!r}") from None
+    if len(pair) != 2 or not all(math.isfinite(x) for x in pair):
+        raise argparse.ArgumentTypeError(f"expects two finite numbers A,B, got {text!r}")
+    return pair[0], pair[1]

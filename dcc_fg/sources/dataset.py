@@ -21,6 +21,7 @@ import logging
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -28,17 +29,26 @@ from tqdm import tqdm
 
 from dcc_fg.data import CalibrationDataset, Observation, Snapshot
 from dcc_fg.detection import detect_target
-from dcc_fg.io.bags import BagImagePairs
+from dcc_fg.io.bags import BagImagePairs, BagTopicImages
 from dcc_fg.io.camchain import CamchainEntry, load_camchain
-from dcc_fg.io.folders import DYNAMIC_DIR, STATIC_DIR, FramePair, ImageFolder
+from dcc_fg.io.folders import (
+    DYNAMIC_DIR,
+    IMAGE_SUFFIXES,
+    STATIC_DIR,
+    FramePair,
+    ImageFolder,
+    list_timestamped,
+    read_image,
+)
 from dcc_fg.io.layout import Layout, detect_layout
 from dcc_fg.io.pairing import DEFAULT_TOLERANCE_NS, Pairing
 from dcc_fg.sources.detections import read_detection_folder
+from dcc_fg.sync import CameraStream
 from dcc_fg.targets import TargetGeometry, load_target
 
 log = logging.getLogger(__name__)
 
-__all__ = ["Detector", "Layout", "detect_layout", "load_dataset"]
+__all__ = ["Detector", "Layout", "detect_layout", "load_dataset", "load_streams"]
 
 Detector = Callable[[NDArray[np.generic], TargetGeometry], Observation]
 
@@ -255,3 +265,77 @@ def load_dataset(
         snapshots=kept,
         source=str(path),
     )
+
+
+@dataclass(frozen=True)
+class CameraStreams:
+    """Both cameras' frames detected on their own (:func:`load_streams`), with their intrinsics."""
+
+    static: CameraStream
+    dynamic: CameraStream
+    entries: tuple[CamchainEntry, CamchainEntry]
+    target: TargetGeometry
+
+
+def _stream_frames(path: Path, layout: Layout, cams: _CameraPair, topics: tuple[str | None, str | None]) -> list[Any]:
+    """Per camera: a sized iterable of ``(stamp ns, image, where)`` and its name for messages."""
+    if layout == "image_folder":
+        out = []
+        for sub in (STATIC_DIR, DYNAMIC_DIR):
+            files = list_timestamped(path / sub, IMAGE_SUFFIXES)
+            out.append(([(t, f) for t, f in sorted(files.items())], str(path / sub)))
+        return out
+    static_topic, dynamic_topic = _bag_topics(cams, topics[0], topics[1])
+    return [(BagTopicImages(path, t), f"{path}: topic {t}") for t in (static_topic, dynamic_topic)]
+
+
+def load_streams(
+    path: str | Path,
+    camchain: str | Path | Mapping[str, CamchainEntry],
+    target: str | Path | TargetGeometry,
+    *,
+    static_cam: str = "cam0",
+    dynamic_cam: str = "cam1",
+    static_topic: str | None = None,
+    dynamic_topic: str | None = None,
+    detector: Detector | None = None,
+    progress: bool = True,
+) -> CameraStreams:
+    """Detect the target in every frame of each camera on its own (no pairing): the input of the
+    calibration from unsynchronized or continuously moving recordings (:mod:`dcc_fg.sync`).
+
+    Args: as :func:`load_dataset` (image folders and bags; a detection folder is already paired).
+
+    Raises:
+        ValueError: naming the file or topic at fault (layout, topic, image size, stamps that go
+            backwards or repeat, a camera without frames).
+    """
+    path = Path(path)
+    layout = detect_layout(path)
+    if layout == "detection_folder":
+        raise ValueError(f"{path}: a detection folder holds paired snapshots; --sync interpolate needs the images")
+    cams = _camera_pair(camchain, static_cam, dynamic_cam)
+    geometry = load_target(target) if isinstance(target, str | Path) else target
+    detector = detector or detect_target
+    streams = []
+    for (frames, where), entry, name in zip(_stream_frames(path, layout, cams, (static_topic, dynamic_topic)),
+                                            cams.entries, cams.names, strict=True):  # fmt: skip
+        stamps, observations = [], []
+        for item in tqdm(
+            frames, total=len(frames), desc=f"detect {name}", unit="frame", disable=not progress, leave=False
+        ):
+            if layout == "image_folder":
+                stamp, file = item
+                image, source = read_image(file), str(file)
+            else:
+                stamp, image, source = item
+            _check_resolution(image, entry, name, source)
+            stamps.append(int(stamp))
+            observations.append(detector(image, geometry))
+        if not stamps:
+            raise ValueError(f"{where}: no frames")
+        order = np.argsort(np.asarray(stamps, dtype=np.int64), kind="stable")
+        if layout != "image_folder" and np.any(np.diff(np.asarray(stamps)) <= 0):
+            log.warning("%s: header stamps are not increasing in record order; frames sorted by stamp", where)
+        streams.append(CameraStream(np.asarray(stamps, dtype=np.int64)[order], [observations[i] for i in order], where))
+    return CameraStreams(streams[0], streams[1], cams.entries, geometry)
