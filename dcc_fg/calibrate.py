@@ -88,6 +88,11 @@ MODES = ("encoderless", "encoders", "validate")
 POSE_LEVEL_REL_TOL = 1e-12
 POSE_LEVEL_MAX_ITERATIONS = 200
 FORMULATIONS = ("bundle", "two_way")
+#: The reported covariances use the weak prior on the held directions (dcc_fg.degeneracy) with its
+#: 1-sigma this many times larger: the prior sits at an arbitrary start value and only keeps the
+#: solve well posed, so the uncertainty must not borrow certainty from it (T_ds does not move along a
+#: truly undetermined direction, but it does along a weakly determined one that fell below the threshold).
+COVARIANCE_PRIOR_WEAKENING = 100.0
 
 
 @dataclass(frozen=True)
@@ -499,9 +504,14 @@ def calibrate(
     problem = initial_problem(data, initial, opt)
     held = hold_degenerate_directions(problem, opt.nominal)
     graph, values = build_graph(problem)
+    cov_graph = gtsam.NonlinearFactorGraph()
+    for i in range(graph.size()):
+        cov_graph.add(graph.at(i))  # the same data factors, shared
     if problem.kin_key is not None:
         for factor in held.factors(problem.kin_key):
             graph.add(factor)
+        for factor in held.factors(problem.kin_key, COVARIANCE_PRIOR_WEAKENING):
+            cov_graph.add(factor)
     solved = solve_graph(graph, values, opt.max_iterations)
     sol = solution_arrays(problem, solved.values)
     res_s, res_d = pixel_residuals(problem, sol)
@@ -510,7 +520,7 @@ def calibrate(
     if held.count:  # parameters moved by a held direction are not determined by the data
         observable[np.flatnonzero(~problem.fixed)[held.involved()]] = False
 
-    cov = covariances_at(graph, solved.values, problem, sol, observable, variance_factor, initial, opt)
+    cov = covariances_at(cov_graph, solved.values, problem, sol, observable, variance_factor, initial, opt)
     validating = opt.mode == "validate"
     cal = GimbalCalibration(
         sol.kin,

@@ -94,11 +94,12 @@ class HeldDirections:
             return np.zeros(len(self.names), dtype=bool)
         return np.max(np.abs(self.directions), axis=0) > INVOLVED
 
-    def factors(self, key: int) -> list[gtsam.CustomFactor]:
-        """The weak prior on the held directions and the nominal priors, on the free-kinematics key."""
+    def factors(self, key: int, weakening: float = 1.0) -> list[gtsam.CustomFactor]:
+        """The weak prior on the held directions (its 1-sigma times ``weakening``) and the nominal
+        priors, on the free-kinematics key."""
         out = []
         if self.count:
-            out.append(linear_prior_factor(key, self.W, self.x0))
+            out.append(linear_prior_factor(key, self.W / weakening, self.x0))
         if self.nominal:
             n = len(self.names)
             rows = np.zeros((len(self.nominal), n))
