@@ -17,6 +17,7 @@ from dcc_fg.data import Observation
 from dcc_fg.sim.write_dataset import CalibrationSimSpec, write_calibration_dataset
 from dcc_fg.sources.dataset import load_dataset, load_streams
 from dcc_fg.sync import CameraStream, SyncOptions, interpolate_observation, lagrange_weights, pair_streams
+from dcc_fg.time_offset import calibrate_streams
 
 MS = 1_000_000  # ns
 
@@ -189,3 +190,18 @@ def test_bad_sync_options_are_refused_before_any_work(
     assert rc != 0
     assert re.search(message, capsys.readouterr().err)
     assert not (tmp_path / "o").exists()
+
+
+def test_an_offset_beyond_half_a_frame_is_logged_and_an_unpairable_one_refused(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """A start offset of more than half a frame period is used as given, with a logged warning; when no
+    gimbal frame pairs at it, the refusal names the offset and the reasons."""
+    ids = np.arange(10)
+    t = np.arange(20, dtype=np.int64) * 50 * MS
+    obs = [Observation(ids, np.full((10, 2), 100.0)) for _ in t]
+    static, dynamic = CameraStream(t, obs, "cam0"), CameraStream(t + 7 * MS, obs, "cam1")
+    cams = (None, None)
+    with caplog.at_level("WARNING", logger="dcc_fg.time_offset"), pytest.raises(ValueError, match="2e\\+03 ms"):
+        calibrate_streams(static, dynamic, cams, np.zeros((10, 3)), 2, delta_s=2.0, estimate=False, source="rec")  # type: ignore[arg-type]
+    assert "more than half a frame period" in caplog.text
