@@ -48,7 +48,7 @@ log = logging.getLogger("dcc_fg.sim.timing")
 
 
 @dataclass(frozen=True)
-class CameraStream:
+class FrameTimes:
     """The frames of one camera: ``camera`` 0 (static) or 1 (gimbal), true exposure times
     ``exposure_ns`` (F,) and header stamps ``stamp_ns`` (F,), both int64 ns from the start of the
     simulation, in exposure order."""
@@ -84,7 +84,7 @@ class CameraTiming:
         """True for the synchronized default (both 20 Hz, no phase, offsets or jitter)."""
         return self == CameraTiming()
 
-    def streams(self, t_end_ns: int, rng: np.random.Generator | None = None) -> tuple[CameraStream, CameraStream]:
+    def streams(self, t_end_ns: int, rng: np.random.Generator | None = None) -> tuple[FrameTimes, FrameTimes]:
         """The static and the gimbal camera's frames within ``[0, t_end_ns]`` (module docstring).
 
         ``rng`` draws the stamp jitter (needed when ``stamp_jitter > 0``); one warning per camera
@@ -105,7 +105,7 @@ class CameraTiming:
                 assert rng is not None
                 stamp = stamp + np.round(rng.normal(0.0, self.stamp_jitter * NS, size=stamp.size)).astype(np.int64)
             keep = (exposure >= 0) & (exposure <= t_end_ns) & (stamp >= 0) & (stamp <= t_end_ns)
-            s = CameraStream(c, exposure[keep], stamp[keep])
+            s = FrameTimes(c, exposure[keep], stamp[keep])
             back = int(np.count_nonzero(np.diff(s.stamp_ns) <= 0))
             if back:
                 log.warning(
