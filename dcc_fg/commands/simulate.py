@@ -183,6 +183,7 @@ def simulate_calibration_command(args: argparse.Namespace) -> int:
         f"wrote {res.camchain}, {res.target}, {res.gimbal}, {res.ground_truth}\n"
         f"calibrate with: dcc-fg calibrate {res.data} --camchain {res.camchain} --target {res.target} "
         f"--gimbal {res.gimbal} --out {Path(args.out) / 'calibration'}"
+        + (" --sync interpolate" if res.images is not None else "")
     )
     return 0
 
