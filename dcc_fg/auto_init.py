@@ -62,7 +62,7 @@ SCREEN_ITERATIONS = 30  # L = 2: pose-level LM iterations of the short fit that 
 N_SCREEN_KEEP = 2  # L = 2: starts carried on to the full pose-level fit
 SCREEN_SNAPSHOTS = 40  # L = 2: at most this many snapshots rank the starts (random-geometry study: 25 suffice)
 N_L3_STARTS = 24  # L = 3: random starts of the axis search
-N_L3_KEEP = 3  # L = 3: best axis-search minima carried on to the pose-level fit (and the corner-level solve)
+N_L3_KEEP = 6  # L = 3: best distinct axis-search minima carried on to the pose-level fit and the corner-level solve
 # Pose-level fits of the candidates stop early: the corner-level solve of dcc_fg.global_fit decides
 # between them (a full fit crept for 200 iterations along the flat directions of nearly degenerate
 # L = 3 mechanisms).
