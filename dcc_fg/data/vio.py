@@ -84,6 +84,9 @@ class TrackFrame:
     ``static_ids`` / ``dynamic_ids`` index one landmark id space: an id seen by both
     cameras is the same world point (this is what makes the joint angles observable).
     ``dynamic_*`` is empty in ``mono`` mode or when the gimbal camera saw nothing.
+    ``timestamp_ns`` is the static image's header stamp; ``dynamic_timestamp_ns`` the gimbal image's
+    (None: the same stamp, a synchronized pair). Stamps are on the cameras' clocks: the smoother
+    relates them to the IMU clock with its time offsets.
     """
 
     timestamp_ns: int
@@ -91,6 +94,14 @@ class TrackFrame:
     static_xy: FloatArray
     dynamic_ids: IntArray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     dynamic_xy: FloatArray = field(default_factory=lambda: np.zeros((0, 2)))
+    dynamic_timestamp_ns: int | None = None
+
+    @property
+    def dynamic_gap_s(self) -> float:
+        """Gimbal stamp minus static stamp, s (0 for a synchronized pair)."""
+        if self.dynamic_timestamp_ns is None:
+            return 0.0
+        return (int(self.dynamic_timestamp_ns) - int(self.timestamp_ns)) / 1e9
 
 
 @dataclass(frozen=True)

@@ -3,12 +3,16 @@
 Per keyframe k: ``pose_key(k)`` = x(k) Pose3 ``T_WI``; ``velocity_key(k)`` = v(k) velocity in W
 (m/s); ``bias_key(k)`` = b(k) ``imuBias.ConstantBias``; ``theta_key(k)`` = t(k) joint angles
 (Vector L, rad; ``dcc`` mode); ``camera_key(k)`` = c(k) Pose3 ``T_Wd`` of the gimbal camera
-(``dcc`` with ``gimbal_factor='camera_pose'``). Per landmark n: ``landmark_key(n)`` = l(n) Point3 in W.
+(``dcc`` with ``gimbal_factor='camera_pose'``, or any mode whose gimbal images are timed:
+:mod:`.exposure`); ``static_camera_key(k)`` = s(k) Pose3 ``T_Ws`` of the static camera at its exposure
+time (when its time offset is estimated or not zero). ``offsets_key`` = o(0) the time offsets
+``[t_s, t_d]`` (Vector 2, s; one variable for the whole run, never marginalized).
+Per landmark n: ``landmark_key(n)`` = l(n) Point3 in W.
 """
 
 from __future__ import annotations
 
-from gtsam.symbol_shorthand import B, C, L, T, V, X
+from gtsam.symbol_shorthand import B, C, L, O, S, T, V, X
 
 pose_key = X
 velocity_key = V
@@ -16,5 +20,16 @@ bias_key = B
 theta_key = T
 camera_key = C
 landmark_key = L
+static_camera_key = S
+offsets_key = O(0)
 
-__all__ = ["bias_key", "camera_key", "landmark_key", "pose_key", "theta_key", "velocity_key"]
+__all__ = [
+    "bias_key",
+    "camera_key",
+    "landmark_key",
+    "offsets_key",
+    "pose_key",
+    "static_camera_key",
+    "theta_key",
+    "velocity_key",
+]

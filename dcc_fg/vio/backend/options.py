@@ -17,6 +17,8 @@ FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 NS = 1_000_000_000
 MODES = ("dcc", "scc", "mono")
+#: Largest |time offset| accepted as a start value, s.
+MAX_TIME_OFFSET_S = 0.5
 
 
 @dataclass(frozen=True)
@@ -36,6 +38,12 @@ class VioOptions:
     sample periods is an IMU gap. After a gap or a divergence the smoother starts a new trajectory
     segment anchored with ``restart_rotation_sigma`` (rad), ``restart_velocity_sigma`` (m/s) and
     ``restart_theta_sigma`` (rad) priors.
+
+    Camera timing (:mod:`~dcc_fg.vio.backend.exposure`): ``time_offsets`` = ``(t_s, t_d)`` (s) are the
+    start values of the static and the gimbal camera's offsets from the IMU clock, convention
+    ``t_imu = t_cam_stamp + t_offset`` (OpenVINS ``calib_camimu_dt``, Kalibr ``timeshift_cam_imu``);
+    ``estimate_time_offsets`` makes them a state of the smoother with a prior of
+    ``time_offset_prior_sigma`` (s) around the start values (False: held at the start values).
     """
 
     mode: str = "dcc"
@@ -79,6 +87,9 @@ class VioOptions:
     restart_rotation_sigma: float = 0.05
     restart_velocity_sigma: float = 1.0
     restart_theta_sigma: float = 0.1
+    time_offsets: tuple[float, float] = (0.0, 0.0)
+    estimate_time_offsets: bool = True
+    time_offset_prior_sigma: float = 0.01
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -94,10 +105,18 @@ class VioOptions:
             "restart_rotation_sigma",
             "restart_velocity_sigma",
             "restart_theta_sigma",
+            "time_offset_prior_sigma",
         ):
             value = getattr(self, name)
             if not (np.isfinite(value) and value > 0):
                 raise ValueError(f"smoother option '{name}' must be a positive number, got {value!r}")
+        if len(self.time_offsets) != 2 or not all(np.isfinite(x) for x in self.time_offsets):
+            raise ValueError(f"time_offsets must be two finite numbers (t_s, t_d in s), got {self.time_offsets!r}")
+        if max(abs(x) for x in self.time_offsets) > MAX_TIME_OFFSET_S:
+            raise ValueError(
+                f"time_offsets {self.time_offsets!r} s: larger than {MAX_TIME_OFFSET_S} s in magnitude; an offset "
+                "that large is a clock problem (different time bases), not a camera delay: fix the stamps"
+            )
 
 
 @dataclass(frozen=True)

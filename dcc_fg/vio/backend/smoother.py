@@ -33,9 +33,18 @@ from dcc_fg.data.vio import ImuConfig, ImuSamples, TrackFrame
 from dcc_fg.model import GimbalCalibration
 from dcc_fg.vio.backend.cameras import GIMBAL, STATIC, CameraRig
 from dcc_fg.vio.backend.divergence import DivergenceLimits, divergence
+from dcc_fg.vio.backend.exposure import ExposureModel
 from dcc_fg.vio.backend.imu import preintegrate, preintegration_params, standstill_state, validate_imu
 from dcc_fg.vio.backend.joints import fit_joint_angles_to_landmarks, joint_measurement_prior, start_joint_angles
-from dcc_fg.vio.backend.keys import bias_key, landmark_key, pose_key, theta_key, velocity_key
+from dcc_fg.vio.backend.keys import (
+    bias_key,
+    camera_key,
+    landmark_key,
+    pose_key,
+    static_camera_key,
+    theta_key,
+    velocity_key,
+)
 from dcc_fg.vio.backend.landmarks import LandmarkMap, outside_gate
 from dcc_fg.vio.backend.options import NS, FloatArray, InitialState, VioOptions, VioResult
 from dcc_fg.vio.backend.state import KeyframeState, result_from_states
@@ -44,6 +53,7 @@ from dcc_fg.vio.backend.zupt import static_tracks_at_rest, zero_velocity_factors
 from dcc_fg.vio.joint_init import fit_joint_angles
 from factors import chain
 from factors.calibration import RobustLoss
+from factors.exposure import CameraMount
 from factors.vio import joint_random_walk_factor
 
 log = logging.getLogger(__name__)
@@ -80,6 +90,7 @@ class VioSmoother:
         self.params = preintegration_params(imu_config)
         self.robust = RobustLoss("huber", options.robust_k)
         self.rig = CameraRig(calibration, self.T_sI, options)
+        self.exposure = ExposureModel(options, imu, self._mounts())
         self.window = FixedLagWindow(options)
         self.landmarks = LandmarkMap()
         self.k = -1
@@ -113,6 +124,22 @@ class VioSmoother:
         self.velocity_sigma: dict[int, float] = {}
 
     # ------------------------------------------------------------------ helpers
+    def _mounts(self) -> dict[int, CameraMount]:
+        """``T_Ic`` of each camera for the exposure-time poses (:mod:`.exposure`)."""
+        o = self.opt
+        timed = o.estimate_time_offsets or any(x != 0.0 for x in o.time_offsets)
+        if timed and o.mode == "dcc" and o.gimbal_factor != "camera_pose":
+            raise ValueError(
+                "time offsets (estimated or not zero) need gimbal_factor 'camera_pose' (the gimbal observations "
+                "project onto an exposure-time camera pose); set estimate_time_offsets False and time_offsets 0"
+            )
+        mounts = {STATIC: CameraMount(T_Ic=chain.inv_se3(self.T_sI))}
+        if o.mode == "dcc":
+            mounts[GIMBAL] = CameraMount(cache=self.rig.chain_cache, T_sI=self.T_sI)
+        elif o.mode == "scc":
+            mounts[GIMBAL] = CameraMount(T_Ic=chain.inv_se3(self.rig.T_dI_fixed))
+        return mounts
+
     def _theta_at(self, k: int, values: gtsam.Values | None = None) -> FloatArray:
         """Joint angles of keyframe ``k``: fixed (scc), none (mono), else from ``values`` or the estimates."""
         if self.opt.mode == "scc":
@@ -124,10 +151,56 @@ class VioSmoother:
         return self.estimates[k].theta if k in self.estimates else self.theta
 
     def _T_Wc(self, k: int, cam: int, theta: FloatArray | None = None) -> FloatArray:
-        """Pose (camera -> W) of camera ``cam`` at keyframe ``k`` from its current estimate."""
+        """Pose (camera -> W) of camera ``cam`` at keyframe ``k`` from its current estimate, at the
+        exposure time of its image when that is timed (:mod:`.exposure`)."""
         if cam == GIMBAL and theta is None:
             theta = self._theta_at(k)
-        return self.rig.T_Wc(self.estimates[k].T_WI, cam, theta)
+        est = self.estimates[k]
+        T = self.exposure.T_Wc(k, cam, est.T_WI, est.v_W, theta)
+        return T if T is not None else self.rig.T_Wc(est.T_WI, cam, theta)
+
+    def _add_camera_poses(
+        self,
+        k: int,
+        frame: TrackFrame,
+        pose: gtsam.Pose3,
+        velocity: FloatArray,
+        graph: gtsam.NonlinearFactorGraph,
+        values: gtsam.Values,
+        stamps: dict[int, int],
+    ) -> None:
+        """Camera poses of keyframe ``k``: exposure-time poses of its timed images (:mod:`.exposure`),
+        else (dcc) the gimbal camera's pose at the keyframe time."""
+        t = self.kf_times[k]
+        gyro_bias = self.bias.gyroscope()
+        if self.exposure.static_timed():
+            self.exposure.add_image(k, STATIC, t, 0.0, pose, velocity, gyro_bias, None, None, graph, values, stamps)
+        if self.opt.mode == "mono":
+            return
+        gap = frame.dynamic_gap_s
+        theta = self._theta_at(k, values)
+        if not self.exposure.gimbal_timed(gap):
+            if self.opt.mode == "dcc":
+                self.rig.add_gimbal_camera_pose(k, t, pose, theta, graph, values, stamps)
+            return
+        previous = None
+        k_prev = k - 1
+        if self.opt.mode == "dcc" and k_prev >= self.segments[-1]["k"] and k_prev in self.kf_times:
+            previous = (k_prev, self.kf_times[k_prev], self._theta_at(k_prev))
+        self.exposure.add_image(
+            k,
+            GIMBAL,
+            t,
+            gap,
+            pose,
+            velocity,
+            gyro_bias,
+            theta if self.opt.mode == "dcc" else None,
+            previous,
+            graph,
+            values,
+            stamps,
+        )
 
     def _standstill_initial_state(self, frame: TrackFrame) -> InitialState:
         initial = standstill_state(self.imu, frame.timestamp_ns, self.opt.standstill_window, self.cfg.gravity, self.L)
@@ -164,13 +237,13 @@ class VioSmoother:
         dcc = self.opt.mode == "dcc"
         sigmas = AnchorSigmas.first_keyframe(self.opt)
         graph, values, stamps = anchor_factors(0, t, pose, v, self.bias, self.theta if dcc else None, sigmas)
-        if dcc:
-            self.rig.add_gimbal_camera_pose(0, t, pose, self.theta, graph, values, stamps)
+        self.exposure.anchor(graph, values, stamps, t)
+        self.segments.append({"k": 0, "start_ns": t, "reason": "start"})
+        self._add_camera_poses(0, frame, pose, v, graph, values, stamps)
         self.state = gtsam.NavState(pose, v)
         self.estimates[0] = KeyframeState(
             t, pose.matrix(), v, self.bias.accelerometer(), self.bias.gyroscope(), self.theta.copy()
         )
-        self.segments.append({"k": 0, "start_ns": t, "reason": "start"})
         self.last_vision_ns = t
         self.vision_factors = 0
         self._observe(0, frame, graph, values, stamps)
@@ -210,6 +283,7 @@ class VioSmoother:
         graph, values, stamps, pred = self._propagate(k_prev, k, t)
         if self.opt.mode == "dcc":
             self._add_joint_angles(k_prev, k, frame, pred.pose(), theta_measurement, graph, values, stamps)
+        self._add_camera_poses(k, frame, pred.pose(), pred.velocity(), graph, values, stamps)
         self._zero_velocity(k_prev, k, frame, graph)
         self._observe(k, frame, graph, values, stamps)
         self._update(graph, values, stamps)
@@ -345,13 +419,17 @@ class VioSmoother:
             o.restart_theta_sigma,
         )
         graph, values, stamps = anchor_factors(k, t, pose, v, bias, theta if dcc else None, sigmas)
-        if dcc:
-            self.rig.add_gimbal_camera_pose(k, t, pose, theta, graph, values, stamps)
+        self.exposure.before_restart(self.window.smoother)
+        self.exposure.anchor(graph, values, stamps, t)
         self.state = gtsam.NavState(pose, v)
         self.bias = bias
         self.theta = theta if self.L else np.zeros(0)
         self.estimates[k] = KeyframeState(t, pose.matrix(), v, bias.accelerometer(), bias.gyroscope(), theta.copy())
         self.segments.append({"k": k, "start_ns": t, "reason": reason})
+        if frame is not None:
+            self._add_camera_poses(k, frame, pose, v, graph, values, stamps)
+        elif dcc:
+            self.rig.add_gimbal_camera_pose(k, t, pose, theta, graph, values, stamps)
         self.stats["segments_started"] = self.stats.get("segments_started", 0) + 1
         log.warning("new trajectory segment %d at t_ns %d (%s): restarted from %s", len(self.segments), t, reason, how)
         self.vision_factors = 0
@@ -459,7 +537,10 @@ class VioSmoother:
         direct measurement while few are seen), with the random walk from ``k_prev``."""
         t = self.kf_times[k]
         dt = (t - self.kf_times[k_prev]) / NS
-        theta0 = self._fit_theta(frame, pose.matrix(), self.theta, self.opt.theta_random_walk * np.sqrt(dt))
+        T_WI = pose.matrix()
+        if self.exposure.gimbal_timed(frame.dynamic_gap_s):  # the body at the gimbal image's exposure
+            T_WI = self.exposure.body_pose_at(T_WI, self.estimates[k].v_W, t, GIMBAL, frame.dynamic_gap_s, self.bias)
+        theta0 = self._fit_theta(frame, T_WI, self.theta, self.opt.theta_random_walk * np.sqrt(dt))
         if theta_measurement is not None and self.gimbal_landmarks(frame) < self.opt.min_gimbal_landmarks:
             prior = joint_measurement_prior(
                 theta_key(k), theta_measurement, self.L, self.opt.theta_measurement_inflation
@@ -473,7 +554,6 @@ class VioSmoother:
         sigma = max(self.opt.theta_random_walk * np.sqrt(dt), 1e-6)
         graph.add(joint_random_walk_factor(theta_key(k_prev), theta_key(k), self.L, sigma))
         self.estimates[k] = self.estimates[k].with_theta(theta0)
-        self.rig.add_gimbal_camera_pose(k, t, pose, theta0, graph, values, stamps)
 
     def _fit_theta(self, frame: TrackFrame, T_WI: FloatArray, theta0: FloatArray, prior_sigma: float) -> FloatArray:
         """Stage one of the gimbal outlier handling (:func:`~.joints.fit_joint_angles_to_landmarks`)
@@ -531,6 +611,9 @@ class VioSmoother:
         """Reprojection factor of landmark ``lm`` seen by camera ``cam`` at keyframe k (counted)."""
         self.stats["static_obs" if cam == STATIC else "dynamic_obs"] += 1
         self.vision_factors += 1
+        if self.exposure.is_timed(k, cam):
+            key = static_camera_key(k) if cam == STATIC else camera_key(k)
+            return self.rig.project_camera(z, key, landmark_key(lm))
         return self.rig.observation_factor(k, cam, lm, z)
 
     def _triangulate_ready(
@@ -552,6 +635,7 @@ class VioSmoother:
 
     def _update(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, stamps: dict[int, int]) -> None:
         """Update the window (restart it after a failure), then refresh estimates and landmarks."""
+        self.exposure.touch(stamps, self.kf_times[self.k])
         error = self.window.update(graph, values, stamps)
         if error is not None:  # indeterminant system etc.: log, restart from the IMU prediction
             self.stats["failed_updates"] += 1
@@ -571,9 +655,13 @@ class VioSmoother:
         """Estimates of the window's keyframes, the newest navigation state, bias, joint angles and
         the landmark positions from the window's current estimate."""
         est = self.window.estimate()
+        self.exposure.refresh(est)
+        oldest = self.k
         for kk, t in self.kf_times.items():
             if est.exists(pose_key(kk)):
                 self.estimates[kk] = KeyframeState.from_values(est, kk, t, self._theta_at(kk))
+                oldest = min(oldest, kk)
+        self.exposure.forget(oldest)
         k = self.k
         self.state = gtsam.NavState(est.atPose3(pose_key(k)), est.atVector(velocity_key(k)))
         self.bias = est.atConstantBias(bias_key(k))
@@ -588,6 +676,8 @@ class VioSmoother:
         k = self.k
         t = self.kf_times[k]
         self.landmarks.clear()
+        self.exposure.forget(k + 1)  # keyframe k's camera poses were lost with the failed update
+        self.exposure.before_restart(self.window.smoother)
         pose = values.atPose3(pose_key(k))
         dcc = self.opt.mode == "dcc"
         theta = values.atVector(theta_key(k)) if dcc else None
@@ -600,6 +690,7 @@ class VioSmoother:
             theta,
             AnchorSigmas.recovery(self.opt),
         )
+        self.exposure.anchor(graph, new, stamps, t)
         if theta is not None:
             self.rig.add_gimbal_camera_pose(k, t, pose, theta, graph, new, stamps)
         self.window.restart(graph, new, stamps)
@@ -615,6 +706,7 @@ class VioSmoother:
                 self.velocity_sigma[self.k] = sigma
         res = result_from_states(self.estimates, self.opt.mode, self.stats)
         res.stats.update(self.recovery_stats(res.timestamps_ns))
+        res.stats["time_offsets"] = self.exposure.summary(self.window.smoother, gimbal=self.opt.mode != "mono")
         return res
 
     def recovery_stats(self, stamps: NDArray[np.int64]) -> dict[str, Any]:

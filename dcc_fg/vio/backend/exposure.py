@@ -1,0 +1,226 @@
+"""Exposure times of the smoother's camera images: the time-offset state and the exposure-time camera poses.
+
+A keyframe sits at its static image's header stamp ``t_k`` read as IMU time. With the convention
+``t_imu = t_cam_stamp + t_offset`` the static image was exposed ``t_s`` s and the gimbal image of the
+same frame ``(t_stamp_d - t_k) + t_d`` s from the keyframe (an unsynchronized gimbal camera adds the
+stamp gap). :class:`ExposureModel` gives each timed image an auxiliary camera pose (``s(k)``,
+``c(k)``, keys in :mod:`.keys`) tied to the keyframe's pose, velocity, joint angles and the offsets
+by :func:`factors.exposure.exposure_pose_factor`; the observations of that image are gtsam's C++
+projection factors on the auxiliary pose.
+
+The offsets ``[t_s, t_d]`` are one ``Vector 2`` variable ``o(0)`` for the whole run, anchored by a
+prior (``time_offset_prior_sigma`` around the start values ``time_offsets``), timed with the newest
+keyframe at every update so the fixed-lag smoother never marginalizes it; after a restart of the
+window it is re-anchored at its estimate with its marginal sigma. With
+``estimate_time_offsets=False`` they are constants. An image is *timed* when its offset is estimated,
+not zero, or (gimbal) its stamp differs from the keyframe's; untimed images keep the direct factors
+(static: on ``x(k)``; gimbal: :func:`factors.vio.gimbal_camera_pose_factor`), so a synchronized run
+without offsets is exactly the same graph as before.
+
+The body twist of a keyframe is its velocity and the gyro's mean rate over the exposure interval
+(minus the gyro bias estimate at the keyframe's creation), a constant of the factor; the joints
+move at the rate of the last keyframe interval. Times: ns for stamps, s for offsets; rad, m.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import gtsam
+import numpy as np
+
+from dcc_fg.data.vio import ImuSamples
+from dcc_fg.vio.backend.keys import (
+    camera_key,
+    offsets_key,
+    pose_key,
+    static_camera_key,
+    theta_key,
+    velocity_key,
+)
+from dcc_fg.vio.backend.options import NS, FloatArray, VioOptions
+from factors.exposure import CameraMount, ExposureKeys, exposure_pose, exposure_pose_factor
+
+STATIC = 0
+GIMBAL = 1
+#: Smallest offset sigma (s) carried across a restart of the window.
+MIN_RESTART_SIGMA_S = 1e-5
+
+
+@dataclass(frozen=True)
+class ImageTiming:
+    """One timed image of keyframe k: stamp gap to the keyframe (s), body rate (rad/s in I), the joint
+    rate (rad/s, gimbal) and whether it is tied to the previous keyframe's joint angles."""
+
+    stamp_gap_s: float
+    omega_I: FloatArray
+    theta_rate: FloatArray
+    theta_prev: bool
+
+
+def mean_gyro(imu: ImuSamples, t0_ns: int, t1_ns: int) -> FloatArray:
+    """Mean gyro rate (rad/s) of the samples in [min, max] of the two times, or of the nearest sample."""
+    a, b = min(t0_ns, t1_ns), max(t0_ns, t1_ns)
+    i0 = int(np.searchsorted(imu.t_ns, a, side="left"))
+    i1 = int(np.searchsorted(imu.t_ns, b, side="right"))
+    if i1 > i0:
+        return np.asarray(imu.gyro[i0:i1].mean(axis=0), float)
+    i = int(np.clip(np.searchsorted(imu.t_ns, t0_ns), 0, len(imu) - 1))
+    if i > 0 and abs(int(imu.t_ns[i - 1]) - t0_ns) < abs(int(imu.t_ns[i]) - t0_ns):
+        i -= 1
+    return np.asarray(imu.gyro[i], float)
+
+
+class ExposureModel:
+    """Offsets variable and exposure-time camera poses of one run (module docstring)."""
+
+    def __init__(self, options: VioOptions, imu: ImuSamples, mounts: dict[int, CameraMount]) -> None:
+        self.opt = options
+        self.imu = imu
+        self.mounts = mounts
+        self.estimate = bool(options.estimate_time_offsets)
+        self.offsets = np.asarray(options.time_offsets, float).copy()
+        self.sigma = np.full(2, options.time_offset_prior_sigma)
+        self.timed: dict[int, dict[int, ImageTiming]] = {}
+
+    # ------------------------------------------------------------------ offsets variable
+    def anchor(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, stamps: dict[int, int], t: int) -> None:
+        """A (fresh) window: the offsets variable with its prior (start values, or the estimate and
+        its marginal sigma after a restart)."""
+        if not self.estimate:
+            return
+        values.insert(offsets_key, self.offsets.copy())
+        graph.add(
+            gtsam.PriorFactorVector(offsets_key, self.offsets.copy(), gtsam.noiseModel.Diagonal.Sigmas(self.sigma))
+        )
+        stamps[offsets_key] = t
+
+    def touch(self, stamps: dict[int, int], t: int) -> None:
+        """Keep the offsets in the window: time them with the newest keyframe."""
+        if self.estimate:
+            stamps[offsets_key] = t
+
+    def refresh(self, estimate: gtsam.Values) -> None:
+        if self.estimate and estimate.exists(offsets_key):
+            self.offsets = np.asarray(estimate.atVector(offsets_key), float).copy()
+
+    def marginal_sigma(self, smoother: object) -> FloatArray | None:
+        """1-sigma (s) of the offsets from the window's marginal covariance (None if unavailable)."""
+        if not self.estimate:
+            return None
+        try:
+            cov = np.asarray(smoother.marginalCovariance(offsets_key), float)  # type: ignore[attr-defined]
+        except RuntimeError:
+            return None
+        return np.sqrt(np.maximum(np.diag(cov), 0.0))
+
+    def before_restart(self, smoother: object) -> None:
+        """Carry the offsets' uncertainty into a restarted window."""
+        sigma = self.marginal_sigma(smoother)
+        if sigma is not None and np.all(np.isfinite(sigma)):
+            self.sigma = np.clip(sigma, MIN_RESTART_SIGMA_S, self.opt.time_offset_prior_sigma)
+
+    # ------------------------------------------------------------------ images
+    def static_timed(self) -> bool:
+        return self.estimate or self.offsets[STATIC] != 0.0
+
+    def gimbal_timed(self, stamp_gap_s: float) -> bool:
+        return self.estimate or self.offsets[GIMBAL] != 0.0 or stamp_gap_s != 0.0
+
+    def is_timed(self, k: int, cam: int) -> bool:
+        return cam in self.timed.get(k, {})
+
+    def T_Wc(self, k: int, cam: int, T_WI: FloatArray, v_W: FloatArray, theta: FloatArray | None) -> FloatArray | None:
+        """Exposure-time pose (camera -> W) of camera ``cam`` at keyframe k, None if the image is not timed."""
+        timing = self.timed.get(k, {}).get(cam)
+        if timing is None:
+            return None
+        delta = timing.stamp_gap_s + float(self.offsets[cam])
+        mount = self.mounts[cam]
+        th = None if theta is None else np.asarray(theta, float) + delta * timing.theta_rate
+        T_Ic, _ = mount(th if mount.on_gimbal else None)
+        return exposure_pose(T_WI, v_W, timing.omega_I, delta, T_Ic)
+
+    def body_pose_at(
+        self,
+        T_WI: FloatArray,
+        v_W: FloatArray,
+        t_ns: int,
+        cam: int,
+        stamp_gap_s: float,
+        bias: gtsam.imuBias.ConstantBias,
+    ) -> FloatArray:
+        """Body pose (I -> W) at the exposure of camera ``cam``'s image ``stamp_gap_s`` after a keyframe at
+        ``t_ns`` with pose ``T_WI`` and velocity ``v_W`` (current offsets, gyro minus ``bias``)."""
+        delta = stamp_gap_s + float(self.offsets[cam])
+        omega = mean_gyro(self.imu, t_ns, t_ns + int(round(delta * NS))) - np.asarray(bias.gyroscope(), float)
+        return exposure_pose(T_WI, v_W, omega, delta, np.eye(4))
+
+    def add_image(
+        self,
+        k: int,
+        cam: int,
+        t_ns: int,
+        stamp_gap_s: float,
+        pose: gtsam.Pose3,
+        velocity: FloatArray,
+        gyro_bias: FloatArray,
+        theta: FloatArray | None,
+        previous: tuple[int, int, FloatArray] | None,
+        graph: gtsam.NonlinearFactorGraph,
+        values: gtsam.Values,
+        stamps: dict[int, int],
+    ) -> None:
+        """Auxiliary pose of camera ``cam``'s image of keyframe k (time ``t_ns``), its start value and
+        its exposure factor. ``previous`` = (keyframe index, time ns, joint angles) of the previous
+        keyframe in the window (gimbal: the joint rate), or None."""
+        delta0 = stamp_gap_s + float(self.offsets[cam])
+        omega = mean_gyro(self.imu, t_ns, t_ns + int(round(delta0 * NS))) - np.asarray(gyro_bias, float)
+        mount = self.mounts[cam]
+        L = mount.n_joints
+        rate = np.zeros(L)
+        dt_prev = 0.0
+        prev_key = None
+        if mount.on_gimbal and previous is not None and theta is not None:
+            k_prev, t_prev, theta_prev = previous
+            dt_prev = (t_ns - t_prev) / NS
+            if dt_prev > 0:
+                rate = (np.asarray(theta, float) - np.asarray(theta_prev, float)) / dt_prev
+                prev_key = theta_key(k_prev)
+        self.timed.setdefault(k, {})[cam] = ImageTiming(stamp_gap_s, omega, rate, prev_key is not None)
+        key = static_camera_key(k) if cam == STATIC else camera_key(k)
+        T_Wc = self.T_Wc(k, cam, pose.matrix(), np.asarray(velocity, float), theta)
+        assert T_Wc is not None
+        values.insert(key, gtsam.Pose3(T_Wc))
+        stamps[key] = t_ns
+        keys = ExposureKeys(
+            pose_key(k),
+            velocity_key(k),
+            key,
+            offsets_key if self.estimate else None,
+            cam,
+            theta_key(k) if mount.on_gimbal else None,
+            prev_key,
+        )
+        sig = self.opt.camera_pose_sigma
+        graph.add(exposure_pose_factor(keys, mount, stamp_gap_s, omega, float(self.offsets[cam]), dt_prev, sig, sig))
+
+    def forget(self, before_k: int) -> None:
+        """Drop the timing of keyframes before ``before_k`` (left the window, or lost in a failed update)."""
+        for kk in [kk for kk in self.timed if kk < before_k]:
+            del self.timed[kk]
+
+    def summary(self, smoother: object, gimbal: bool) -> dict[str, object]:
+        """``time_offsets`` block of the result: estimates and 1-sigma (s), the convention."""
+        sigma = self.marginal_sigma(smoother)
+        out: dict[str, object] = {
+            "convention": "t_imu = t_cam_stamp + t_offset",
+            "estimated": self.estimate,
+            "start_s": {"static": float(self.opt.time_offsets[0]), "dynamic": float(self.opt.time_offsets[1])},
+            "static_s": float(self.offsets[STATIC]),
+            "static_sigma_s": None if sigma is None else float(sigma[STATIC]),
+        }
+        if gimbal:
+            out["dynamic_s"] = float(self.offsets[GIMBAL])
+            out["dynamic_sigma_s"] = None if sigma is None else float(sigma[GIMBAL])
+        return out
