@@ -61,6 +61,20 @@ def kalibr_imu_config(imu_yaml: Path, T_sI: np.ndarray) -> ImuConfig:
     return ImuConfig(**kwargs)
 
 
+def camchain_time_offsets(camchain: Path) -> tuple[float, float] | None:
+    """Kalibr's ``timeshift_cam_imu`` of cam0 and cam1 (s, ``t_imu = t_cam + shift``), None if absent
+    (cam1's defaults to 0 when only cam0 has one)."""
+    d = validate.load_yaml(camchain, "Kalibr camchain-imucam", "cam0.T_cam_imu")
+    shifts = []
+    for cam in ("cam0", "cam1"):
+        entry = d.get(cam)
+        value = entry.get("timeshift_cam_imu") if isinstance(entry, dict) else None
+        shifts.append(None if value is None else validate.number(value, f"{camchain}: {cam}.timeshift_cam_imu"))
+    if shifts[0] is None and shifts[1] is None:
+        return None
+    return float(shifts[0] or 0.0), float(shifts[1] or 0.0)
+
+
 def camchain_T_sI(camchain: Path) -> np.ndarray:
     """``T_cam_imu`` of ``cam0`` in a Kalibr camchain-imucam YAML (IMU -> static camera, 4x4)."""
     d = validate.load_yaml(camchain, "Kalibr camchain-imucam", "cam0.T_cam_imu")
@@ -76,13 +90,15 @@ class VioRunOptions:
 
     ``pixel_sigma``: feature noise in pixels (1 sigma; the smoother's normalized ``sigma`` is
     ``pixel_sigma`` / the static camera's mean focal length); ``sync_tolerance_ms``: static <-> gimbal
-    image pairing tolerance, milliseconds; ``dynamic_rejection``: the second stage of the gimbal outlier
-    handling; ``frontend_worker``: ``auto`` | ``inline`` | ``process``; ``fit_initial_joints``: start the
+    image pairing tolerance by exposure time, milliseconds (None: half the slower camera's frame period,
+    so a free-running gimbal camera pairs every static frame with its nearest image);
+    ``dynamic_rejection``: the second stage of the gimbal outlier handling; ``frontend_worker``: ``auto`` |
+    ``inline`` | ``process``; ``fit_initial_joints``: start the
     dcc joint angles from the first frame's static <-> gimbal matches.
     """
 
     pixel_sigma: float = 1.0
-    sync_tolerance_ms: float = 5.0
+    sync_tolerance_ms: float | None = None
     dynamic_rejection: bool = True
     frontend_worker: str = "auto"
     fit_initial_joints: bool = True
@@ -90,7 +106,9 @@ class VioRunOptions:
     def __post_init__(self) -> None:
         if not (np.isfinite(self.pixel_sigma) and self.pixel_sigma > 0):
             raise ValueError(f"pixel_sigma must be a positive number of pixels, got {self.pixel_sigma}")
-        if not (np.isfinite(self.sync_tolerance_ms) and self.sync_tolerance_ms > 0):
+        if self.sync_tolerance_ms is not None and not (
+            np.isfinite(self.sync_tolerance_ms) and self.sync_tolerance_ms > 0
+        ):
             raise ValueError(f"sync_tolerance_ms must be positive, got {self.sync_tolerance_ms}")
         if self.frontend_worker not in ("auto", "inline", "process"):
             raise ValueError(f"frontend_worker must be auto, inline or process, got {self.frontend_worker!r}")
@@ -195,14 +213,20 @@ def imu_config(inputs: VioInputs) -> ImuConfig:
                     "cam0.T_cam_imu)"
                 )
             T_sI = embedded.T_sI
-        return kalibr_imu_config(Path(inputs.imu_yaml), T_sI)
+        imu = kalibr_imu_config(Path(inputs.imu_yaml), T_sI)
+        if inputs.camchain:
+            imu = dataclasses.replace(imu, time_offsets=camchain_time_offsets(Path(inputs.camchain)))
+        return imu
     imu = load_imu_config(cal_path)
     if imu is None:
         raise ValueError(
             f"{cal_path}: no 'imu:' section (T_sI and the IMU noise); add one or pass --imu-yaml and --camchain"
         )
     if inputs.camchain:
-        imu = dataclasses.replace(imu, T_sI=camchain_T_sI(Path(inputs.camchain)))
+        shifts = camchain_time_offsets(Path(inputs.camchain))
+        imu = dataclasses.replace(
+            imu, T_sI=camchain_T_sI(Path(inputs.camchain)), time_offsets=shifts or imu.time_offsets
+        )
     return imu
 
 
@@ -219,9 +243,14 @@ def check_angles(values: tuple[float, ...] | None, n: int, option: str) -> None:
         raise ValueError(f"{option}: expected {n} finite joint angles (rad), got {list(values)}")
 
 
-def smoother_options(config: VioConfig, cal: GimbalCalibration, cal_path: Path) -> VioOptions:
-    """The smoother's options: the config's, with ``sigma`` from ``run.pixel_sigma`` and checked angles."""
+def smoother_options(
+    config: VioConfig, cal: GimbalCalibration, cal_path: Path, imu: ImuConfig | None = None
+) -> VioOptions:
+    """The smoother's options: the config's, with ``sigma`` from ``run.pixel_sigma``, checked angles and
+    the time offsets' start values from ``--time-offsets``, else the calibration's / camchain's."""
     opts = config.smoother
+    if opts.time_offsets is None and imu is not None and imu.time_offsets is not None:
+        opts = dataclasses.replace(opts, time_offsets=tuple(imu.time_offsets))
     L = cal.n_joints
     check_angles(opts.theta_fixed, L, "--fixed-joints (smoother.theta_fixed)")
     check_angles(opts.theta_initial, L, "--initial-joints (smoother.theta_initial)")
@@ -279,13 +308,13 @@ def run_vio(
     outputs = OutputSet(out, "vio", inputs.by_option(config_file))
     cal = load_calibration(cal_path)
     imu = imu_config(inputs)
-    options = smoother_options(config, cal, cal_path)
+    options = smoother_options(config, cal, cal_path, imu)
     mono = options.mode == "mono"
     topics = BagTopics(config.topics.imu, config.topics.static, None if mono else config.topics.dynamic)
     pipeline = PipelineOptions(
         reject_dynamic=config.run.dynamic_rejection,
         fit_initial_joints=config.run.fit_initial_joints,
-        tolerance_ns=int(round(config.run.sync_tolerance_ms * 1e6)),
+        tolerance_ns=None if config.run.sync_tolerance_ms is None else int(round(config.run.sync_tolerance_ms * 1e6)),
         worker=config.run.frontend_worker,
         frontend=frontend_config(config, cal),
     )
@@ -377,7 +406,14 @@ def add_vio_flags(v: argparse.ArgumentParser) -> None:
     opt(v, "--keyframe-every", "smoother.keyframe_every", type=int, help="every n-th frame is a keyframe (default 3)")
     opt(v, "--lag", "smoother.lag", type=float, help="smoother window, seconds (default 1.5)")
     opt(v, "--sync-tolerance", "run.sync_tolerance_ms", type=float, metavar="MS",
-        help="image pairing tolerance, ms (default 5)")  # fmt: skip
+        help="static <-> gimbal image pairing tolerance by exposure time (stamp + offset), ms (default: half the "
+        "slower camera's frame period: each static image takes its nearest gimbal image)")  # fmt: skip
+    opt(v, "--time-offsets", "smoother.time_offsets", type=common.float_pair, metavar="T_S,T_D",
+        help="start values of the static and gimbal camera's time offsets from the IMU clock, s, convention "
+        "t_imu = t_cam_stamp + t_offset (Kalibr timeshift_cam_imu); default: the calibration's imu.time_offsets or "
+        "the camchain's timeshift_cam_imu, else 0,0. Estimated online unless --fix-time-offsets")  # fmt: skip
+    opt(v, "--fix-time-offsets", "smoother.estimate_time_offsets", action="store_false",
+        help="hold the time offsets at their start values instead of estimating them")  # fmt: skip
     opt(v, "--accept-unhealthy", "output.accept_unhealthy", action="store_true", help="write a trajectory that "
         "failed its health checks (divergence, covariance blow-up, vision unused) instead of refusing it with exit "
         "code 3; summary.json then says health: healthy: false, with the reasons")  # fmt: skip

@@ -115,6 +115,8 @@ class ImuConfig:
     Defaults are EuRoC's ADIS16448 figures. ``acc_range`` (m/s^2) and ``gyro_range`` (rad/s) are
     the sensor's measurement range per axis (default 16 g and 2000 deg/s, the largest full scales
     of common MEMS IMUs): a sample beyond it cannot be a measurement and is dropped by the readers.
+    ``time_offsets`` = ``(t_s, t_d)`` (s, optional) are the cameras' time offsets from the IMU clock,
+    ``t_imu = t_cam_stamp + t_offset`` (Kalibr's ``timeshift_cam_imu``): the VIO's start values.
 
     Every number is checked on construction (finite; positive noise, rate, gravity and ranges;
     ``T_sI`` a rigid transform: orthonormal rotation with determinant +1, last row 0 0 0 1);
@@ -130,8 +132,13 @@ class ImuConfig:
     gravity: float = 9.81
     acc_range: float = 16.0 * STANDARD_GRAVITY
     gyro_range: float = GYRO_RANGE_RAD_S
+    time_offsets: tuple[float, float] | None = None
 
     def __post_init__(self) -> None:
+        if self.time_offsets is not None:
+            t = tuple(self.time_offsets)
+            if len(t) != 2 or not all(isinstance(x, int | float) and np.isfinite(x) for x in t):
+                raise ValueError(f"'time_offsets' must be two finite numbers [t_s, t_d] (s), got {self.time_offsets!r}")
         for name in POSITIVE_FIELDS:
             value = getattr(self, name)
             if not (isinstance(value, int | float | np.floating | np.integer) and np.isfinite(value) and value > 0):
@@ -149,6 +156,7 @@ class ImuConfig:
             "gravity": float(self.gravity),
             "acc_range": float(self.acc_range),
             "gyro_range": float(self.gyro_range),
+            **({} if self.time_offsets is None else {"time_offsets": [float(x) for x in self.time_offsets]}),
         }
 
     @staticmethod
@@ -163,6 +171,13 @@ class ImuConfig:
                 except (TypeError, ValueError):
                     raise ValueError(f"{source}: 'T_sI' must be a 4x4 matrix of numbers") from None
                 kwargs[key] = T
+            elif key == "time_offsets":
+                if not isinstance(value, list | tuple) or len(value) != 2:
+                    raise ValueError(f"{source}: 'time_offsets' must be a list [t_s, t_d] of two numbers (s)")
+                try:
+                    kwargs[key] = (float(value[0]), float(value[1]))
+                except (TypeError, ValueError):
+                    raise ValueError(f"{source}: 'time_offsets' must be a list [t_s, t_d] of two numbers (s)") from None
             elif key in ImuConfig.__dataclass_fields__:
                 try:
                     kwargs[key] = float(value)

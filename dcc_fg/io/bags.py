@@ -317,21 +317,23 @@ def stream_image_groups(
     topics: Sequence[str],
     groups: Sequence[Sequence[int]],
     convert: Callable[[NDArray[np.generic]], NDArray[np.generic]] | None = None,
-) -> Iterator[tuple[int, list[StampedImage]]]:
+) -> Iterator[tuple[int, list[StampedImage | None]]]:
     """Second pass of a bag: decode the images of ``groups`` and yield each group once it is complete.
 
     Args:
         path: the bag.
         topics: image topics (already checked with :func:`image_topic_connections`).
         groups: per group, the index of its message within each topic's message sequence (in the
-            order of ``topics``), e.g. the ``(i, j)`` pairs of a :class:`~dcc_fg.io.pairing.Pairing`.
+            order of ``topics``), e.g. the ``(i, j)`` pairs of a :class:`~dcc_fg.io.pairing.Pairing`;
+            a negative index means the group has no image of that topic (None in its place).
         convert: applied to each decoded image before it waits for its partner (e.g. to grey).
 
     Yields:
         ``(group index, images in the order of topics)``, in the order in which the last image of
         each group appears in the bag; messages outside every group are skipped undecoded.
     """
-    group_of = [{idx[k]: n for n, idx in enumerate(groups)} for k in range(len(topics))]
+    group_of = [{idx[k]: n for n, idx in enumerate(groups) if idx[k] >= 0} for k in range(len(topics))]
+    need = [sum(1 for i in idx if i >= 0) for idx in groups]
     slot = {topic: k for k, topic in enumerate(topics)}
     count = [0] * len(topics)
     pending: dict[int, dict[int, StampedImage]] = {}
@@ -348,9 +350,9 @@ def stream_image_groups(
             where = f"{path}: topic {conn.topic} at {ts} ns"
             img = decode_image(msg, conn.msgtype, where)
             pending.setdefault(n, {})[k] = StampedImage(convert(img) if convert else img, where, ts)
-            if len(pending[n]) == len(topics):
+            if len(pending[n]) == need[n]:
                 got = pending.pop(n)
-                yield n, [got[i] for i in range(len(topics))]
+                yield n, [got.get(i) for i in range(len(topics))]
 
 
 def joint_state_topic(reader: AnyReader, path: Path, joint_topic: str | None) -> str | None:
@@ -470,6 +472,7 @@ class BagImagePairs:
         jidx = nearest_within(pair_stamps, self.joints[0], self.tolerance_ns) if self.joints is not None else None
         topics = (self.static_topic, self.dynamic_topic)
         for n, (s, d) in stream_image_groups(self.path, topics, self.pairing.pairs):
+            assert s is not None and d is not None  # every group is a pair
             joints = None
             if self.joints is not None and jidx is not None and jidx[n] >= 0:
                 joints = self.joints[1][jidx[n]].copy()

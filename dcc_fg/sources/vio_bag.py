@@ -21,10 +21,19 @@ Bad input (each named by bag, topic and time):
   (:func:`~dcc_fg.data.vio.check_imu_against_frames`);
 * IMU stamps that go backwards or repeat: the offending samples are dropped with a warning
   (``ValueError`` beyond ``max_bad_imu_fraction``);
+* image stamps out of record order: frames are processed in stamp order (logged with the count);
+* a gimbal stream that stops, drops frames or starts late: static frames without a gimbal partner are
+  kept as static-only frames (logged with the count); a gimbal topic with no partner at all is an error;
 * gaps: an IMU gap longer than ``max_imu_gap_s`` or an image gap longer than
   ``max_image_gap_s`` is logged, listed in :attr:`VioBag.imu_gaps` / :attr:`VioBag.image_gaps`,
   and the first frame after an image gap (or after an IMU gap ending before it) carries
   ``after_gap=True`` so the estimator can re-initialize instead of integrating across it.
+
+Pairing (unsynchronized cameras): each static image is paired with the gimbal image nearest to it in
+*exposure time* on the IMU clock, ``stamp + t_offset`` with the start values of the time offsets
+(``time_offsets_ns``), one to one, within ``tolerance_ns`` (None: half the slower camera's median
+frame period, so every static frame of a free-running gimbal camera finds its nearest partner). The
+smoother accounts for the gap between the two stamps (:mod:`dcc_fg.vio.backend.exposure`).
 
 Units: ns, m/s^2 (``linear_acceleration``), rad/s (``angular_velocity``).
 """
@@ -48,17 +57,18 @@ from dcc_fg.data.vio import (
 )
 from dcc_fg.detection import to_gray8
 from dcc_fg.io.bags import scan_imu_and_image_stamps, stream_image_groups
-from dcc_fg.io.pairing import DEFAULT_TOLERANCE_NS, pair_timestamps
+from dcc_fg.io.pairing import median_period_ms, pair_timestamps
 
 log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
 class VioFrame:
-    """One synchronized frame: grey 8-bit images (``dynamic`` None in a static-only bag).
+    """One frame: the static image and its gimbal partner, grey 8-bit (``dynamic`` None in a static-only
+    bag or when the gimbal camera has no image near this one).
 
-    ``timestamp_ns`` is the static image's stamp; ``after_gap`` marks the first frame after an
-    image or IMU gap.
+    ``timestamp_ns`` is the static image's stamp, ``dynamic_timestamp_ns`` the gimbal image's (they
+    differ for unsynchronized cameras); ``after_gap`` marks the first frame after an image or IMU gap.
     """
 
     timestamp_ns: int
@@ -194,7 +204,9 @@ class VioBag:
         imu_topic: ``sensor_msgs/Imu`` topic.
         static_topic: static-camera image topic (``Image`` or ``CompressedImage``).
         dynamic_topic: gimbal-camera image topic, or None (static camera only).
-        tolerance_ns: pairing tolerance of the two image streams.
+        tolerance_ns: pairing tolerance of the two image streams (None: half the slower camera's frame period).
+        time_offsets_ns: start values of the static and gimbal camera's time offsets (``t_imu = stamp +
+            offset``), ns: images are paired by ``stamp + offset``.
         max_image_gap_s, max_imu_gap_s: longer gaps are reported (logged, ``after_gap``).
         max_bad_imu_fraction: more bad IMU samples than this fraction is an error.
         acc_range, gyro_range: the IMU's range per axis (m/s^2, rad/s; ``ImuConfig.acc_range`` and
@@ -207,7 +219,8 @@ class VioBag:
         imu_topic: str,
         static_topic: str,
         dynamic_topic: str | None = None,
-        tolerance_ns: int = DEFAULT_TOLERANCE_NS,
+        tolerance_ns: int | None = None,
+        time_offsets_ns: tuple[int, int] = (0, 0),
         max_image_gap_s: float = 0.5,
         max_imu_gap_s: float = 0.05,
         max_bad_imu_fraction: float = 0.01,
@@ -246,6 +259,19 @@ class VioBag:
                     topic,
                     len(stamps) - len(first),
                 )
+        for topic in image_topics:
+            backwards = int(np.count_nonzero(np.diff(np.asarray(self._stamps[topic], dtype=np.int64)) < 0))
+            if backwards:
+                log.warning(
+                    "%s: topic %s: the header stamp goes backwards %d times in record order; frames are processed "
+                    "in stamp order",
+                    self.path,
+                    topic,
+                    backwards,
+                )
+        self.time_offsets_ns = (int(time_offsets_ns[0]), int(time_offsets_ns[1]))
+        self.tolerance_ns = tolerance_ns
+        self.pairing_statistics: dict[str, float | int | None] | None = None
         self._pairs = self._pair_images(tolerance_ns)
         s = self._stamps[static_topic]
         self.frame_times = np.array(sorted(s[i] for i, _ in self._pairs), dtype=np.int64)
@@ -259,24 +285,39 @@ class VioBag:
         check_imu_against_frames(self.imu.t_ns, self.frame_times, where)
 
     # -- first-pass helpers ----------------------------------------------------------------------
-    def _pair_images(self, tolerance_ns: int) -> list[tuple[int, int]]:
-        """``(static index, dynamic index)`` per frame (dynamic -1 in a static-only bag)."""
+    def _pair_images(self, tolerance_ns: int | None) -> list[tuple[int, int]]:
+        """``(static index, dynamic index)`` per frame, by exposure time (module docstring); dynamic -1
+        for a static frame without a gimbal partner and in a static-only bag."""
         s_topic, d_topic = self.static_topic, self.dynamic_topic
         s = self._stamps[s_topic]
         if not s:
             raise ValueError(f"{self.path}: topic {s_topic} has no messages")
         if not d_topic:
             return [(i, -1) for i in range(len(s))]
-        if not self._stamps[d_topic]:
+        d = self._stamps[d_topic]
+        if not d:
             raise ValueError(f"{self.path}: topic {d_topic} has no messages")
-        pairing = pair_timestamps(s, self._stamps[d_topic], tolerance_ns)
+        if tolerance_ns is None:
+            periods = [p for p in (median_period_ms(s), median_period_ms(d)) if p is not None]
+            tolerance_ns = int(0.5 * max(periods) * 1e6) if periods else 0
+            self.tolerance_ns = tolerance_ns
+        t_s, t_d = self.time_offsets_ns
+        pairing = pair_timestamps(np.asarray(s) + t_s, np.asarray(d) + t_d, tolerance_ns)
         if not pairing.pairs:
             raise ValueError(
-                f"{self.path}: no image of {s_topic} has a partner on {d_topic} within {tolerance_ns / 1e6:g} ms"
+                f"{self.path}: no image of {s_topic} has a partner on {d_topic} within {tolerance_ns / 1e6:g} ms "
+                f"(stamps + time offsets {t_s / 1e6:g}, {t_d / 1e6:g} ms); check the gimbal topic's stamps, the "
+                "time offsets and the pairing tolerance"
             )
         if pairing.unpaired_static or pairing.unpaired_dynamic:
-            log.warning("%s: %s", self.path, pairing.summary(s_topic, d_topic))
-        return pairing.pairs
+            log.warning(
+                "%s: %s; static frames without a partner are used without the gimbal camera",
+                self.path,
+                pairing.summary(s_topic, d_topic),
+            )
+        self.pairing_statistics = pairing.statistics()
+        paired = {i for i, _ in pairing.pairs}
+        return sorted(pairing.pairs + [(i, -1) for i in range(len(s)) if i not in paired], key=lambda p: s[p[0]])
 
     def _frames_after_gaps(self) -> set[int]:
         """Frame stamps that come first after an image gap or after an IMU gap."""
@@ -289,6 +330,11 @@ class VioBag:
 
     def __len__(self) -> int:
         return len(self._pairs)
+
+    def period_s(self, topic: str) -> float | None:
+        """Median frame period of an image topic, s (None for fewer than two images)."""
+        p = median_period_ms(self._stamps[topic])
+        return None if p is None else p / 1e3
 
     @property
     def duration_s(self) -> float:
@@ -321,7 +367,7 @@ class VioBag:
         first_s = self._first[s_topic]
         if d_topic:
             first_d = self._first[d_topic]
-            groups: list[tuple[int, ...]] = [(first_s[i], first_d[j]) for i, j in self._pairs]
+            groups: list[tuple[int, ...]] = [(first_s[i], first_d[j] if j >= 0 else -1) for i, j in self._pairs]
         else:
             groups = [(first_s[i],) for i, _ in self._pairs]
         order = sorted(range(len(self._pairs)), key=lambda n: self._stamps[s_topic][self._pairs[n][0]])
@@ -330,7 +376,9 @@ class VioBag:
         next_out = 0
         for n, images in stream_image_groups(self.path, topics, groups, to_gray8):
             s_img = images[0]
-            d_img, d_ts = (images[1].image, images[1].stamp_ns) if d_topic else (None, 0)
+            assert s_img is not None
+            d = images[1] if d_topic else None
+            d_img, d_ts = (d.image, d.stamp_ns) if d is not None else (None, 0)
             ready[rank[n]] = VioFrame(s_img.stamp_ns, s_img.image, d_img, d_ts, s_img.stamp_ns in self._gap_starts)
             while next_out in ready:
                 yield ready.pop(next_out)

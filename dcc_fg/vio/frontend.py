@@ -224,6 +224,7 @@ class FrontendStats:
     dynamic_rejected: int = 0
     matches: int = 0
     pairs_split: int = 0
+    frames_without_gimbal: int = 0
 
     def summary(self) -> dict[str, float]:
         def med(x: list[float]) -> float:
@@ -241,6 +242,7 @@ class FrontendStats:
             "ransac_tested": float(self.ransac_tested),
             "ransac_inlier_ratio": 1.0 - self.ransac_rejected / max(self.ransac_tested, 1),
             "matches": float(self.matches),
+            "frames_without_gimbal": float(self.frames_without_gimbal),
         }
 
 
@@ -405,8 +407,9 @@ class Frontend:
 
         Args:
             timestamp_ns: frame time, ns.
-            static_image, dynamic_image: images (grey or BGR, 8 or 16 bit); ``dynamic_image`` is
-                required when the front end has a gimbal camera.
+            static_image, dynamic_image: images (grey or BGR, 8 or 16 bit); without ``dynamic_image``
+                (the gimbal camera has no image near this one) the gimbal tracks wait for its next
+                image and the frame has no gimbal observations.
             T_ds: the back end's current estimate of static -> gimbal camera (4x4) for matching;
                 keeps the previous estimate when None.
             gimbal_hint: if given, reject gimbal tracks right away (see :meth:`reject_dynamic`);
@@ -421,16 +424,16 @@ class Frontend:
         self.static.enforce_spacing()
         self.static.detect()
         t1 = time.perf_counter()
-        if self.dynamic is not None:
-            if dynamic_image is None:
-                raise ValueError(f"frame at {timestamp_ns} ns: the gimbal camera image is missing")
+        gimbal = self.dynamic is not None and dynamic_image is not None
+        if gimbal:
+            assert self.dynamic is not None and dynamic_image is not None
             self.stats.fb_rejected += self.dynamic.track(to_gray8(dynamic_image))
             if gimbal_hint is not None:
                 self.reject_dynamic(gimbal_hint)
             self.dynamic.enforce_spacing()
             self.dynamic.detect()
         t2 = time.perf_counter()
-        if self.dynamic is not None:
+        if gimbal:
             self._match()
         t3 = time.perf_counter()
         self.stats.frames += 1
@@ -438,6 +441,10 @@ class Frontend:
         self.stats.dynamic_ms.append(1e3 * (t2 - t1))
         self.stats.match_ms.append(1e3 * (t3 - t2))
         self.stats.cpu_ms.append(1e3 * (time.process_time() - c0))
+        if self.dynamic is not None and not gimbal:
+            self.stats.frames_without_gimbal += 1
+            s = self.static
+            return TrackFrame(int(timestamp_ns), s.ids.copy(), s.xy.copy())
         return self.frame(timestamp_ns)
 
     def frame(self, timestamp_ns: int) -> TrackFrame:

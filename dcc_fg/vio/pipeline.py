@@ -61,7 +61,8 @@ class BagTopics:
 @dataclass(frozen=True)
 class PipelineOptions:
     """Front-end side of a run: ``reject_dynamic`` enables the second stage of the gimbal outlier
-    handling; ``tolerance_ns`` pairs static and gimbal images; ``frontend`` overrides the front-end
+    handling; ``tolerance_ns`` pairs static and gimbal images by exposure time (None: half the slower
+    camera's frame period, :class:`~dcc_fg.sources.vio_bag.VioBag`); ``frontend`` overrides the front-end
     parameters (default: :meth:`FrontendConfig.for_resolution` of the static camera);
     ``fit_initial_joints`` (``dcc``) starts the joint angles from the first frame's static <-> gimbal
     matches (:func:`~dcc_fg.vio.joint_init.fit_joint_angles`) instead of taking the guess as is;
@@ -73,7 +74,7 @@ class PipelineOptions:
     reject_dynamic: bool = True
     fit_initial_joints: bool = True
     worker: str = "auto"
-    tolerance_ns: int = 5_000_000
+    tolerance_ns: int | None = None
     frontend: FrontendConfig | None = None
 
 
@@ -87,6 +88,51 @@ def check_bag_inputs(calibration: GimbalCalibration, options: VioOptions, topics
         raise ValueError(f"mode '{options.mode}' needs the gimbal camera model (cam1 intrinsics)")
     if topics.dynamic is None:
         raise ValueError(f"mode '{options.mode}' needs the gimbal camera's image topic")
+
+
+def time_offsets_ns(options: VioOptions) -> tuple[int, int]:
+    """The start values of the time offsets ``(t_s, t_d)``, ns."""
+    t = options.offsets
+    return int(round(t[0] * NS)), int(round(t[1] * NS))
+
+
+def check_time_offsets(vb: VioBag, options: VioOptions) -> None:
+    """Refuse start values of the time offsets the exposure model cannot bridge (before any work).
+
+    The smoother moves each image from its keyframe to its exposure with the keyframe's twist over
+    ``|stamp gap + offset|`` (:mod:`dcc_fg.vio.backend.exposure`); beyond one frame period of the camera
+    that first-order model no longer holds (and a wrong sign or unit, ms given as s, is the usual
+    cause). Offsets beyond half a period are accepted with a warning: images are paired by exposure time.
+
+    Raises:
+        ValueError: naming the camera, its measured period and the offset.
+    """
+    names = ("static", "gimbal")
+    topics = (vb.static_topic, vb.dynamic_topic)
+    for c, (name, topic) in enumerate(zip(names, topics, strict=True)):
+        if topic is None:
+            continue
+        period = vb.period_s(topic)
+        if period is None:
+            continue
+        off = float(options.offsets[c])
+        if abs(off) > period:
+            raise ValueError(
+                f"{vb.path}: topic {topic}: the start value of the {name} camera's time offset is {off * 1e3:g} ms, "
+                f"more than one frame period ({period * 1e3:.1f} ms): the exposure model between keyframes does not "
+                "hold that far. Check the sign (t_imu = t_cam_stamp + t_offset) and the unit (seconds), or shift "
+                "the stamps of the topic by the known delay and start from 0"
+            )
+        if abs(off) > 0.5 * period:
+            log.warning(
+                "%s: topic %s: the start value of the %s camera's time offset (%g ms) is more than half a frame "
+                "period (%.1f ms); images are paired by stamp + offset",
+                vb.path,
+                topic,
+                name,
+                off * 1e3,
+                period * 1e3,
+            )
 
 
 def joint_angle_guess(options: VioOptions, initial: InitialState | None) -> FloatArray | None:
@@ -196,6 +242,7 @@ def frontend_spec(
         topics.static,
         None if mono else topics.dynamic,
         pipeline.tolerance_ns,
+        time_offsets_ns(options),
         calibration,
         pipeline.frontend,
         tuple(float(x) for x in theta0),
@@ -213,7 +260,12 @@ def run_statistics(
     return {
         "bag": str(bag),
         "topics": {"imu": topics.imu, "static": topics.static, "dynamic": None if mono else topics.dynamic},
-        "frame_pairs_in_bag": len(vb),
+        "frames_in_bag": len(vb),
+        "pairing": {
+            "tolerance_ms": None if vb.tolerance_ns is None else vb.tolerance_ns / 1e6,
+            "time_offsets_start_s": list(driver.options.offsets),
+            **(vb.pairing_statistics or {}),
+        },
         "frames_outside_imu": worker.counters["skipped"],
         "image_gaps": len(vb.image_gaps),
         "imu_gaps": len(vb.imu_gaps),
@@ -275,9 +327,11 @@ def run_vio_bag(
         topics.static,
         None if mono else topics.dynamic,
         tolerance_ns=pipeline.tolerance_ns,
+        time_offsets_ns=time_offsets_ns(options),
         acc_range=imu_config.acc_range,
         gyro_range=imu_config.gyro_range,
     )
+    check_time_offsets(vb, options)
     t_first, t_last = int(vb.imu.t_ns[0]), int(vb.imu.t_ns[-1])
     t_min = t_first if initial is None else max(t_first, int(initial.t_ns))
     guess = joint_angle_guess(options, initial)

@@ -16,6 +16,7 @@ iteration the counters and the front end's statistics. Times in ns, angles in ra
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import os
 import pickle
@@ -102,7 +103,8 @@ class WorkerSpec:
     imu_topic: str
     static_topic: str
     dynamic_topic: str | None
-    tolerance_ns: int
+    tolerance_ns: int | None
+    time_offsets_ns: tuple[int, int]
     calibration: GimbalCalibration
     config: FrontendConfig | None
     theta0: tuple[float, ...]
@@ -154,13 +156,22 @@ class _Tracker:
                 self.resets += 1
             T_ds = None if mono else spec.calibration.T_ds(self.thetas.at(t))
             frame = fe.process(t, vf.static, vf.dynamic, T_ds=T_ds)
+            if vf.dynamic is not None:
+                frame = dataclasses.replace(frame, dynamic_timestamp_ns=int(vf.dynamic_timestamp_ns))
             started = True
             self.processed += 1
             yield Tracked(index, frame, vf.after_gap, fe.dynamic_snapshot() if spec.snapshots else None)
 
 
 def _open_bag(spec: WorkerSpec) -> VioBag:
-    return VioBag(spec.bag, spec.imu_topic, spec.static_topic, spec.dynamic_topic, tolerance_ns=spec.tolerance_ns)
+    return VioBag(
+        spec.bag,
+        spec.imu_topic,
+        spec.static_topic,
+        spec.dynamic_topic,
+        tolerance_ns=spec.tolerance_ns,
+        time_offsets_ns=spec.time_offsets_ns,
+    )
 
 
 def _send(stream: Any, obj: Any) -> None:

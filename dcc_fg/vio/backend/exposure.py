@@ -79,7 +79,7 @@ class ExposureModel:
         self.imu = imu
         self.mounts = mounts
         self.estimate = bool(options.estimate_time_offsets)
-        self.offsets = np.asarray(options.time_offsets, float).copy()
+        self.offsets = np.asarray(options.offsets, float)
         self.sigma = np.full(2, options.time_offset_prior_sigma)
         self.timed: dict[int, dict[int, ImageTiming]] = {}
 
@@ -110,7 +110,7 @@ class ExposureModel:
             return None
         try:
             cov = np.asarray(smoother.marginalCovariance(offsets_key), float)  # type: ignore[attr-defined]
-        except RuntimeError:
+        except (RuntimeError, IndexError):  # indeterminant, or the key is not in a (failed) Bayes tree
             return None
         return np.sqrt(np.maximum(np.diag(cov), 0.0))
 
@@ -216,7 +216,7 @@ class ExposureModel:
         out: dict[str, object] = {
             "convention": "t_imu = t_cam_stamp + t_offset",
             "estimated": self.estimate,
-            "start_s": {"static": float(self.opt.time_offsets[0]), "dynamic": float(self.opt.time_offsets[1])},
+            "start_s": {"static": self.opt.offsets[0], "dynamic": self.opt.offsets[1]},
             "static_s": float(self.offsets[STATIC]),
             "static_sigma_s": None if sigma is None else float(sigma[STATIC]),
         }

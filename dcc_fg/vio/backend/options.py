@@ -39,9 +39,10 @@ class VioOptions:
     segment anchored with ``restart_rotation_sigma`` (rad), ``restart_velocity_sigma`` (m/s) and
     ``restart_theta_sigma`` (rad) priors.
 
-    Camera timing (:mod:`~dcc_fg.vio.backend.exposure`): ``time_offsets`` = ``(t_s, t_d)`` (s) are the
-    start values of the static and the gimbal camera's offsets from the IMU clock, convention
-    ``t_imu = t_cam_stamp + t_offset`` (OpenVINS ``calib_camimu_dt``, Kalibr ``timeshift_cam_imu``);
+    Camera timing (:mod:`~dcc_fg.vio.backend.exposure`): ``time_offsets`` = ``(t_s, t_d)`` (s; None:
+    zeros, or the calibration's for ``dcc-fg vio``) are the start values of the static and the gimbal
+    camera's offsets from the IMU clock, convention ``t_imu = t_cam_stamp + t_offset`` (OpenVINS
+    ``calib_camimu_dt``, Kalibr ``timeshift_cam_imu``);
     ``estimate_time_offsets`` makes them a state of the smoother with a prior of
     ``time_offset_prior_sigma`` (s) around the start values (False: held at the start values).
     """
@@ -87,7 +88,7 @@ class VioOptions:
     restart_rotation_sigma: float = 0.05
     restart_velocity_sigma: float = 1.0
     restart_theta_sigma: float = 0.1
-    time_offsets: tuple[float, float] = (0.0, 0.0)
+    time_offsets: tuple[float, float] | None = None
     estimate_time_offsets: bool = True
     time_offset_prior_sigma: float = 0.01
 
@@ -110,13 +111,21 @@ class VioOptions:
             value = getattr(self, name)
             if not (np.isfinite(value) and value > 0):
                 raise ValueError(f"smoother option '{name}' must be a positive number, got {value!r}")
-        if len(self.time_offsets) != 2 or not all(np.isfinite(x) for x in self.time_offsets):
+        t = self.offsets
+        if len(t) != 2 or not all(np.isfinite(x) for x in t):
             raise ValueError(f"time_offsets must be two finite numbers (t_s, t_d in s), got {self.time_offsets!r}")
-        if max(abs(x) for x in self.time_offsets) > MAX_TIME_OFFSET_S:
+        if max(abs(x) for x in t) > MAX_TIME_OFFSET_S:
             raise ValueError(
                 f"time_offsets {self.time_offsets!r} s: larger than {MAX_TIME_OFFSET_S} s in magnitude; an offset "
                 "that large is a clock problem (different time bases), not a camera delay: fix the stamps"
             )
+
+    @property
+    def offsets(self) -> tuple[float, float]:
+        """The start values ``(t_s, t_d)`` of the time offsets, s (zeros when not given)."""
+        if self.time_offsets is None:
+            return (0.0, 0.0)
+        return (float(self.time_offsets[0]), float(self.time_offsets[1]))
 
 
 @dataclass(frozen=True)

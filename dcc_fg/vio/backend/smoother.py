@@ -127,7 +127,7 @@ class VioSmoother:
     def _mounts(self) -> dict[int, CameraMount]:
         """``T_Ic`` of each camera for the exposure-time poses (:mod:`.exposure`)."""
         o = self.opt
-        timed = o.estimate_time_offsets or any(x != 0.0 for x in o.time_offsets)
+        timed = o.estimate_time_offsets or any(x != 0.0 for x in o.offsets)
         if timed and o.mode == "dcc" and o.gimbal_factor != "camera_pose":
             raise ValueError(
                 "time offsets (estimated or not zero) need gimbal_factor 'camera_pose' (the gimbal observations "
