@@ -10,10 +10,10 @@ with ``t_c`` the camera's time offset (s; ``t_s`` for the static camera, ``t_d``
 camera). The image is ``delta = (t_stamp - t_k) + t_c`` seconds away from its keyframe. Over so short
 an interval (a frame period plus the offset, tens of ms) the body moves with the keyframe's twist
 ``xi = [omega_I, R_WI^T v_W]`` (body rates in I: the bias-corrected gyro, and the velocity), and the
-joints move at the rate of the last keyframe interval:
+joints move at a known rate ``theta_dot`` (rad/s, from the smoother's estimates):
 
     ``T_WI(t_k + delta) = T_WI Exp(delta xi)``,
-    ``theta(t_k + delta) = theta_k + (delta / dt_k) (theta_k - theta_{k-1})``,
+    ``theta(t_k + delta) = theta_k + delta theta_dot``,
     ``T_Wc = T_WI(t_k + delta) T_Ic(theta(t_k + delta))``,
 
 with ``T_Ic`` the camera mount: ``T_Is = T_sI^-1`` for the static camera and
@@ -90,8 +90,7 @@ def exposure_pose(
 class ExposureKeys:
     """Keys of one exposure factor: keyframe pose ``x`` (Pose3 T_WI) and velocity ``v`` (Vector3),
     the camera pose ``c`` (Pose3 T_Wc), the offsets ``offsets`` (Vector, entry ``offset_index``; None:
-    fixed), and for a gimbal camera the joint angles ``theta`` of the keyframe and ``theta_prev`` of
-    the previous one (None: the joints are taken as still)."""
+    fixed), and for a gimbal camera the keyframe's joint angles ``theta``."""
 
     pose: int
     velocity: int
@@ -99,7 +98,6 @@ class ExposureKeys:
     offsets: int | None = None
     offset_index: int = 0
     theta: int | None = None
-    theta_prev: int | None = None
 
 
 def exposure_pose_factor(
@@ -108,15 +106,16 @@ def exposure_pose_factor(
     stamp_gap_s: float,
     omega_I: FloatArray,
     fixed_offset_s: float = 0.0,
-    dt_prev_s: float = 0.0,
+    theta_rate: FloatArray | None = None,
     sigma_rotation: float = 1e-4,
     sigma_translation: float = 1e-4,
 ) -> gtsam.CustomFactor:
     """``e = Log(C^-1 T_Wc)``, ``C = T_WI Exp(delta xi) T_Ic(theta')`` (module docstring), in rad and m.
 
     ``delta = stamp_gap_s + t_c`` (``t_c`` the offset variable's entry, or ``fixed_offset_s``);
-    ``theta' = theta_k + r (theta_k - theta_prev)``, ``r = delta / dt_prev_s``. ``omega_I`` (rad/s)
-    is a constant of the factor. Jacobians, with ``M = Exp(delta xi)``, ``X = T_Ic(theta')``,
+    ``theta' = theta_k + delta theta_rate``. ``omega_I`` and ``theta_rate`` (rad/s) are constants of
+    the factor (a joint-rate *variable*, through the previous keyframe's angles, made gtsam's
+    Cholesky fail on the tightly constrained system). Jacobians, with ``M = Exp(delta xi)``, ``X = T_Ic(theta')``,
     ``D = C^-1 T_Wc``, ``A = -J_r^-1(e) Ad(D^-1)`` (the derivative of ``e`` by a right perturbation
     ``C Exp(eta)``), ``J_M = J_r(delta xi)``:
 
@@ -124,8 +123,8 @@ def exposure_pose_factor(
     * ``T_WI`` (right perturbation ``[phi, rho]``): ``A [Ad((M X)^-1) + Ad(X^-1) J_M delta dxi/dphi]``,
       ``dxi/dphi = [[0, 0], [[R^T v]_x, 0]]`` (the velocity in I turns with the body);
     * ``v_W``: ``A Ad(X^-1) J_M delta [0; R^T]``;
-    * ``t_c``: ``A (Ad(X^-1) xi + G theta_dot)``, ``theta_dot = (theta_k - theta_prev) / dt_prev_s``;
-    * ``theta_k``: ``A G (1 + r)``; ``theta_prev``: ``-A G r`` (``G`` from :class:`CameraMount`).
+    * ``t_c``: ``A (Ad(X^-1) xi + G theta_rate)``;
+    * ``theta_k``: ``A G`` (``G`` from :class:`CameraMount`).
     """
     omega = np.asarray(omega_I, float).reshape(3)
     key_list = [keys.pose, keys.velocity, keys.camera]
@@ -136,12 +135,8 @@ def exposure_pose_factor(
         if keys.theta is None:
             raise ValueError("a gimbal-camera exposure factor needs the keyframe's joint-angle key")
         key_list.append(keys.theta)
-        if keys.theta_prev is not None:
-            if not dt_prev_s > 0:
-                raise ValueError(f"the interval to the previous keyframe must be > 0 s, got {dt_prev_s}")
-            key_list.append(keys.theta_prev)
+    rate = np.zeros(mount.n_joints) if theta_rate is None else np.asarray(theta_rate, float).reshape(mount.n_joints)
     noise = gtsam.noiseModel.Diagonal.Sigmas(np.r_[np.full(3, sigma_rotation), np.full(3, sigma_translation)])
-    use_prev = gimbal and keys.theta_prev is not None
 
     def error(this: gtsam.CustomFactor, values: gtsam.Values, H: list[FloatArray] | None) -> FloatArray:
         T_WI = values.atPose3(keys.pose)
@@ -150,14 +145,7 @@ def exposure_pose_factor(
         T_Wc = values.atPose3(keys.camera)
         t_c = fixed_offset_s if keys.offsets is None else float(values.atVector(keys.offsets)[keys.offset_index])
         delta = stamp_gap_s + t_c
-        theta_rate = np.zeros(mount.n_joints)
-        theta_c = None
-        if gimbal:
-            theta_k = values.atVector(keys.theta)
-            theta_c = theta_k
-            if use_prev:
-                theta_rate = (theta_k - values.atVector(keys.theta_prev)) / dt_prev_s
-                theta_c = theta_k + delta * theta_rate
+        theta_c = values.atVector(keys.theta) + delta * rate if gimbal else None
         X_mat, G = mount(theta_c)
         X = gtsam.Pose3(X_mat)
         v_I = R.T @ v
@@ -180,15 +168,12 @@ def exposure_pose_factor(
             out.append(delta * B @ dxi_dv)
             out.append(Jinv)
             if keys.offsets is not None:
-                d_offset = A @ (AdXinv @ xi + G @ theta_rate)
+                d_offset = A @ (AdXinv @ xi + G @ rate)
                 row = np.zeros((6, values.atVector(keys.offsets).shape[0]))
                 row[:, keys.offset_index] = d_offset
                 out.append(row)
             if gimbal:
-                r = delta / dt_prev_s if use_prev else 0.0
-                out.append((1.0 + r) * (A @ G))
-                if use_prev:
-                    out.append(-r * (A @ G))
+                out.append(A @ G)
             for i, h in enumerate(out):
                 H[i] = h
         return e

@@ -12,7 +12,7 @@ from factors.chain import inv_se3
 from factors.exposure import CameraMount, ExposureKeys, exposure_pose, exposure_pose_factor
 from factors.vio import ChainCache
 
-X, V, C, O, TH, TP = (gtsam.symbol(c, 0) for c in "xvcotp")
+X, V, C, O, TH = (gtsam.symbol(c, 0) for c in "xvcot")
 
 
 def _retract(values: gtsam.Values, key: int, d: np.ndarray) -> gtsam.Values:
@@ -55,7 +55,6 @@ def _values(rng: np.random.Generator, L: int) -> gtsam.Values:
     values.insert(C, gtsam.Pose3(gtsam.Rot3.Expmap(rng.normal(size=3)), rng.normal(size=3) * 5.0))
     values.insert(O, rng.uniform(-0.03, 0.03, 2))
     values.insert(TH, rng.normal(size=L) * 0.5)
-    values.insert(TP, rng.normal(size=L) * 0.5)
     return values
 
 
@@ -79,11 +78,12 @@ def test_gimbal_exposure_factor_jacobians(seed: int) -> None:
     cal = flight_calibration()
     values = _values(rng, cal.n_joints)
     mount = CameraMount(cache=ChainCache(cal.kin, cal.n_joints), T_sI=default_static_mount())
-    keys = ExposureKeys(X, V, C, O, offset_index=1, theta=TH, theta_prev=TP)
-    f = exposure_pose_factor(keys, mount, rng.uniform(-0.04, 0.04), rng.normal(size=3), 0.0, rng.uniform(0.05, 0.2))
-    _check(f, values)
-    no_prev = ExposureKeys(X, V, C, O, offset_index=1, theta=TH)
-    _check(exposure_pose_factor(no_prev, mount, rng.uniform(-0.04, 0.04), rng.normal(size=3)), values)
+    keys = ExposureKeys(X, V, C, O, offset_index=1, theta=TH)
+    rate = rng.normal(size=cal.n_joints)  # rad/s
+    _check(exposure_pose_factor(keys, mount, rng.uniform(-0.04, 0.04), rng.normal(size=3), 0.0, rate), values)
+    _check(exposure_pose_factor(keys, mount, rng.uniform(-0.04, 0.04), rng.normal(size=3)), values)
+    fixed = ExposureKeys(X, V, C, theta=TH)
+    _check(exposure_pose_factor(fixed, mount, rng.uniform(-0.04, 0.04), rng.normal(size=3), 0.015, rate), values)
 
 
 def test_zero_error_at_the_modelled_exposure_pose() -> None:
@@ -91,16 +91,14 @@ def test_zero_error_at_the_modelled_exposure_pose() -> None:
     cal = flight_calibration()
     T_sI = default_static_mount()
     values = _values(rng, cal.n_joints)
-    gap, dt, omega = 0.021, 0.1, rng.normal(size=3)
-    t_d = values.atVector(O)[1]
-    delta = gap + t_d
-    th = values.atVector(TH)
-    th_c = th + delta * (th - values.atVector(TP)) / dt
+    gap, rate, omega = 0.021, rng.normal(size=cal.n_joints), rng.normal(size=3)
+    delta = gap + values.atVector(O)[1]
+    th_c = values.atVector(TH) + delta * rate
     T_Id = inv_se3(cal.T_ds(th_c) @ T_sI)
     T_Wd = exposure_pose(values.atPose3(X).matrix(), values.atVector(V), omega, delta, T_Id)
     values.update(C, gtsam.Pose3(T_Wd))
     mount = CameraMount(cache=ChainCache(cal.kin, cal.n_joints), T_sI=T_sI)
-    f = exposure_pose_factor(ExposureKeys(X, V, C, O, 1, TH, TP), mount, gap, omega, 0.0, dt)
+    f = exposure_pose_factor(ExposureKeys(X, V, C, O, 1, TH), mount, gap, omega, 0.0, rate)
     assert np.abs(f.unwhitenedError(values)).max() < 1e-12
 
 

@@ -29,8 +29,10 @@ def _write(
     frame_t: np.ndarray | None = None,
     imu_topic: str = "/imu0",
     dynamic: bool = True,
+    dynamic_t: np.ndarray | None = None,
 ) -> Path:
-    """A small bag: 200 Hz IMU over 1 s and 20 Hz 32x24 image pairs (unless overridden)."""
+    """A small bag: 200 Hz IMU over 1 s and 20 Hz 32x24 image pairs (unless overridden); ``dynamic_t``
+    gives the gimbal camera its own stamps (an unsynchronized stream, recorded at its stamps)."""
     imu_t = T0 + np.arange(201) * 5 * MS if imu_t is None else imu_t
     acc = np.tile([0.1, 0.2, 9.81], (imu_t.size, 1)) if acc is None else acc
     frame_t = T0 + np.arange(21) * 50 * MS if frame_t is None else frame_t
@@ -38,16 +40,22 @@ def _write(
     # IMU messages are recorded in their given order, at a record time that keeps increasing even
     # where the header stamps do not (as a bag recorder does)
     record = np.maximum.accumulate(imu_t)
-    events = [(int(t), 0, i) for i, t in enumerate(record)] + [(int(t), 1, i) for i, t in enumerate(frame_t)]
+    # images are recorded in their given order too (stamps out of order are recorded at increasing times)
+    frame_record = np.sort(frame_t)
+    events = [(int(t), 0, i) for i, t in enumerate(record)] + [(int(t), 1, i) for i, t in enumerate(frame_record)]
+    if dynamic_t is not None:
+        events += [(int(t), 2, i) for i, t in enumerate(dynamic_t)]
     events.sort(key=lambda e: (e[0], e[1], e[2]))
     with BagWriter(path, ros) as bag:  # type: ignore[arg-type]
         for t, kind, i in events:
             if kind == 0:
                 bag.imu(imu_topic, int(imu_t[i]), acc[i], np.array([0.01, -0.02, 0.03]), record_ns=t)
+            elif kind == 2:
+                bag.image("/cam1/image_raw", t, rng.integers(0, 255, (24, 32), dtype=np.uint8), "cam1")
             else:
                 img = rng.integers(0, 255, (24, 32), dtype=np.uint8)
-                bag.image("/cam0/image_raw", t, img, "cam0")
-                if dynamic:
+                bag.image("/cam0/image_raw", int(frame_t[i]), img, "cam0", record_ns=t)
+                if dynamic and dynamic_t is None:
                     bag.image("/cam1/image_raw", t, img[:, ::-1].copy(), "cam1")
     return path
 
@@ -75,6 +83,39 @@ def test_round_trip_is_time_sorted(tmp_path: Path, ros: int) -> None:
     assert (n_imu, n_frames) == (201, 21)
     mono = VioBag(path, "/imu0", "/cam0/image_raw")
     assert all(f.dynamic is None for f in mono.frames())
+
+
+def test_unsynchronized_gimbal_stream_is_paired_by_exposure_time(tmp_path: Path, caplog) -> None:
+    """A 20 Hz static and a 30 Hz gimbal camera on their own clocks: every static frame takes its nearest
+    gimbal image (automatic tolerance: half the 50 ms period), in exposure time (stamp + offset), and
+    keeps its own stamp; after the gimbal stream stops the static frames go on without it."""
+    static_t = T0 + np.arange(21) * 50 * MS
+    gimbal_t = T0 + 7 * MS + np.arange(20) * 33_333_333  # 30 Hz, stops after 0.64 s
+    path = _write(tmp_path / "u", dynamic_t=gimbal_t)
+    with caplog.at_level(logging.WARNING):
+        vb = VioBag(path, "/imu0", "/cam0/image_raw", "/cam1/image_raw")
+    frames = list(vb.frames())
+    assert len(frames) == 21 and vb.tolerance_ns == 25 * MS
+    with_gimbal = [f for f in frames if f.dynamic is not None]
+    gaps = np.array([f.dynamic_timestamp_ns - f.timestamp_ns for f in with_gimbal])
+    assert len(with_gimbal) == 14 and np.abs(gaps).max() <= 17 * MS  # the nearest 30 Hz image (to 0.65 s)
+    assert all(f.dynamic is None for f in frames[14:])  # the stream stopped
+    assert "static frames without a partner are used without the gimbal camera" in caplog.text
+    # pairing by exposure time: a 40 ms offset of the gimbal stamps (t_imu = stamp + 0.040) moves the partners
+    shifted = VioBag(path, "/imu0", "/cam0/image_raw", "/cam1/image_raw", time_offsets_ns=(0, 40 * MS))
+    pairs = [(f.timestamp_ns, f.dynamic_timestamp_ns) for f in shifted.frames() if f.dynamic is not None]
+    exposure_gap = np.array([d + 40 * MS - s for s, d in pairs])
+    assert len(pairs) >= 12 and np.abs(exposure_gap).max() <= 25 * MS and np.median(np.abs(exposure_gap)) <= 17 * MS
+
+
+def test_image_stamps_out_of_record_order_are_sorted(tmp_path: Path, caplog) -> None:
+    t = T0 + np.arange(21) * 50 * MS
+    t[[5, 6]] = t[[6, 5]]  # recorded in the wrong order
+    with caplog.at_level(logging.WARNING):
+        vb = VioBag(_write(tmp_path / "o", frame_t=t), "/imu0", "/cam0/image_raw")
+    stamps = [f.timestamp_ns for f in vb.frames()]
+    assert stamps == sorted(stamps) and len(stamps) == 21
+    assert "the header stamp goes backwards 1 times in record order" in caplog.text
 
 
 def test_missing_or_wrong_topics(tmp_path: Path) -> None:

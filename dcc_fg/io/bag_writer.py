@@ -160,11 +160,18 @@ class BagWriter:
         self.counts[topic] = self.counts.get(topic, 0) + 1
 
     def image(
-        self, topic: str, stamp_ns: int, img: NDArray[np.generic], frame_id: str, compressed: bool = False
+        self,
+        topic: str,
+        stamp_ns: int,
+        img: NDArray[np.generic],
+        frame_id: str,
+        compressed: bool = False,
+        record_ns: int | None = None,
     ) -> None:
-        """``sensor_msgs/Image`` (mono8/mono16/bgr8/bgra8) or PNG ``CompressedImage``."""
+        """``sensor_msgs/Image`` (mono8/mono16/bgr8/bgra8) or PNG ``CompressedImage``; ``record_ns`` sets a
+        record time different from the header stamp."""
         msgtype, msg = image_message(self.typestore, img, int(stamp_ns), frame_id, compressed)
-        self.write(topic, msgtype, stamp_ns, msg)
+        self.write(topic, msgtype, stamp_ns if record_ns is None else record_ns, msg)
 
     def imu(
         self,

@@ -424,9 +424,11 @@ def flight_calibration() -> GimbalCalibration:
     return true_kinematics(2)
 
 
-def _visible(
+def visible_points(
     camera: CameraModel, p_c: FloatArray, max_range: float, margin: float
 ) -> tuple[NDArray[np.bool_], FloatArray]:
+    """Which points ``p_c`` (N, 3, camera frame, m) the camera sees: in front (> 0.3 m), closer than
+    ``max_range`` m, inside the image by ``margin`` px, within a sane angle; and their pixels."""
     front = p_c[:, 2] > 0.3
     in_range = np.linalg.norm(p_c, axis=1) < max_range
     uv, _ = camera.project(p_c, jacobian=False)
@@ -469,13 +471,13 @@ def simulate_tracks(
     for f, i in enumerate(idx):
         T_sW = T_sI @ chain.inv_se3(truth.T_WI[i])
         p_s = P_h @ T_sW[:3].T
-        vis_s, _ = _visible(cam_s, p_s, max_range, margin_px)
+        vis_s, _ = visible_points(cam_s, p_s, max_range, margin_px)
         vis_d = np.zeros_like(vis_s)
         p_d = np.zeros_like(p_s)
         if dynamic:
             T_dW = calibration.T_ds(thetas[f]) @ T_sW
             p_d = P_h @ T_dW[:3].T
-            vis_d, _ = _visible(cam_d, p_d, max_range, margin_px)
+            vis_d, _ = visible_points(cam_d, p_d, max_range, margin_px)
         seen = vis_s | vis_d
         track_id[~seen] = -1
         new = seen & (track_id < 0)

@@ -19,7 +19,8 @@ without offsets is exactly the same graph as before.
 
 The body twist of a keyframe is its velocity and the gyro's mean rate over the exposure interval
 (minus the gyro bias estimate at the keyframe's creation), a constant of the factor; the joints
-move at the rate of the last keyframe interval. Times: ns for stamps, s for offsets; rad, m.
+move at the rate from the previous keyframe's estimate to this keyframe's starting value (a
+constant too). Times: ns for stamps, s for offsets; rad, m.
 """
 
 from __future__ import annotations
@@ -49,13 +50,12 @@ MIN_RESTART_SIGMA_S = 1e-5
 
 @dataclass(frozen=True)
 class ImageTiming:
-    """One timed image of keyframe k: stamp gap to the keyframe (s), body rate (rad/s in I), the joint
-    rate (rad/s, gimbal) and whether it is tied to the previous keyframe's joint angles."""
+    """One timed image of keyframe k: stamp gap to the keyframe (s), body rate (rad/s in I) and the
+    joint rate (rad/s, gimbal camera)."""
 
     stamp_gap_s: float
     omega_I: FloatArray
     theta_rate: FloatArray
-    theta_prev: bool
 
 
 def mean_gyro(imu: ImuSamples, t0_ns: int, t1_ns: int) -> FloatArray:
@@ -137,8 +137,11 @@ class ExposureModel:
             return None
         delta = timing.stamp_gap_s + float(self.offsets[cam])
         mount = self.mounts[cam]
-        th = None if theta is None else np.asarray(theta, float) + delta * timing.theta_rate
-        T_Ic, _ = mount(th if mount.on_gimbal else None)
+        th = None
+        if mount.on_gimbal:
+            assert theta is not None
+            th = np.asarray(theta, float) + delta * timing.theta_rate
+        T_Ic, _ = mount(th)
         return exposure_pose(T_WI, v_W, timing.omega_I, delta, T_Ic)
 
     def body_pose_at(
@@ -166,28 +169,22 @@ class ExposureModel:
         velocity: FloatArray,
         gyro_bias: FloatArray,
         theta: FloatArray | None,
-        previous: tuple[int, int, FloatArray] | None,
+        previous: tuple[int, FloatArray] | None,
         graph: gtsam.NonlinearFactorGraph,
         values: gtsam.Values,
         stamps: dict[int, int],
     ) -> None:
         """Auxiliary pose of camera ``cam``'s image of keyframe k (time ``t_ns``), its start value and
-        its exposure factor. ``previous`` = (keyframe index, time ns, joint angles) of the previous
-        keyframe in the window (gimbal: the joint rate), or None."""
+        its exposure factor. ``previous`` = (time ns, joint angles) of the previous keyframe of the
+        segment (gimbal: the joint rate), or None."""
         delta0 = stamp_gap_s + float(self.offsets[cam])
         omega = mean_gyro(self.imu, t_ns, t_ns + int(round(delta0 * NS))) - np.asarray(gyro_bias, float)
         mount = self.mounts[cam]
         L = mount.n_joints
         rate = np.zeros(L)
-        dt_prev = 0.0
-        prev_key = None
-        if mount.on_gimbal and previous is not None and theta is not None:
-            k_prev, t_prev, theta_prev = previous
-            dt_prev = (t_ns - t_prev) / NS
-            if dt_prev > 0:
-                rate = (np.asarray(theta, float) - np.asarray(theta_prev, float)) / dt_prev
-                prev_key = theta_key(k_prev)
-        self.timed.setdefault(k, {})[cam] = ImageTiming(stamp_gap_s, omega, rate, prev_key is not None)
+        if mount.on_gimbal and previous is not None and theta is not None and t_ns > previous[0]:
+            rate = (np.asarray(theta, float) - np.asarray(previous[1], float)) / ((t_ns - previous[0]) / NS)
+        self.timed.setdefault(k, {})[cam] = ImageTiming(stamp_gap_s, omega, rate)
         key = static_camera_key(k) if cam == STATIC else camera_key(k)
         T_Wc = self.T_Wc(k, cam, pose.matrix(), np.asarray(velocity, float), theta)
         assert T_Wc is not None
@@ -200,10 +197,9 @@ class ExposureModel:
             offsets_key if self.estimate else None,
             cam,
             theta_key(k) if mount.on_gimbal else None,
-            prev_key,
         )
         sig = self.opt.camera_pose_sigma
-        graph.add(exposure_pose_factor(keys, mount, stamp_gap_s, omega, float(self.offsets[cam]), dt_prev, sig, sig))
+        graph.add(exposure_pose_factor(keys, mount, stamp_gap_s, omega, float(self.offsets[cam]), rate, sig, sig))
 
     def forget(self, before_k: int) -> None:
         """Drop the timing of keyframes before ``before_k`` (left the window, or lost in a failed update)."""

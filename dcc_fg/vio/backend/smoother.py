@@ -99,7 +99,8 @@ class VioSmoother:
         self.state: gtsam.NavState | None = None
         self.bias = gtsam.imuBias.ConstantBias()
         self.theta = np.zeros(self.L)
-        self.frame_count = 0
+        # frames added since the last keyframe (the first added frame is a keyframe)
+        self.since_keyframe = options.keyframe_every - 1
         self.prev_static: dict[int, FloatArray] = {}
         self.stats: dict[str, Any] = {
             "keyframes": 0,
@@ -186,7 +187,7 @@ class VioSmoother:
         previous = None
         k_prev = k - 1
         if self.opt.mode == "dcc" and k_prev >= self.segments[-1]["k"] and k_prev in self.kf_times:
-            previous = (k_prev, self.kf_times[k_prev], self._theta_at(k_prev))
+            previous = (self.kf_times[k_prev], self._theta_at(k_prev))
         self.exposure.add_image(
             k,
             GIMBAL,
@@ -253,8 +254,18 @@ class VioSmoother:
         self._after_keyframe(0)
 
     def next_is_keyframe(self) -> bool:
-        """True if the next :meth:`add_frame` call will make a keyframe."""
-        return self.frame_count % self.opt.keyframe_every == 0
+        """True if a keyframe is due at the next :meth:`add_frame` call (:meth:`_makes_keyframe`)."""
+        return self.since_keyframe >= self.opt.keyframe_every - 1
+
+    def _makes_keyframe(self, frame: TrackFrame) -> bool:
+        """Every ``keyframe_every``-th frame is a keyframe; with a gimbal camera a due keyframe waits (up
+        to ``keyframe_every - 1`` more frames) for a frame with gimbal observations, so that cameras at
+        different rates (a static frame without a gimbal partner) do not leave the joints unobserved."""
+        n = self.opt.keyframe_every
+        if self.since_keyframe < n - 1:
+            return False
+        waiting = self.opt.mode != "mono" and frame.dynamic_ids.size == 0
+        return not waiting or self.since_keyframe >= 2 * n - 2
 
     def gimbal_landmarks(self, frame: TrackFrame) -> int:
         """How many of the frame's gimbal-camera tracks are mapped landmarks."""
@@ -270,10 +281,11 @@ class VioSmoother:
         reprojection factors cannot determine the angles yet (start-up at standstill, after a gap),
         as the starting value and a prior with the covariance inflated by ``theta_measurement_inflation``.
         """
-        self.frame_count += 1
-        if (self.frame_count - 1) % self.opt.keyframe_every:
+        if not self._makes_keyframe(frame):
+            self.since_keyframe += 1
             self.last_frame_static = dict(zip(frame.static_ids.tolist(), frame.static_xy, strict=True))
             return False
+        self.since_keyframe = 0
         k_prev, k = self.k, self.k + 1
         t = frame.timestamp_ns
         gap = self.in_gap or self._imu_gap_ns(self.kf_times[k_prev], t) > self.max_imu_gap_ns
