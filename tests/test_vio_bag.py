@@ -89,7 +89,6 @@ def test_unsynchronized_gimbal_stream_is_paired_by_exposure_time(tmp_path: Path,
     """A 20 Hz static and a 30 Hz gimbal camera on their own clocks: every static frame takes its nearest
     gimbal image (automatic tolerance: half the 50 ms period), in exposure time (stamp + offset), and
     keeps its own stamp; after the gimbal stream stops the static frames go on without it."""
-    static_t = T0 + np.arange(21) * 50 * MS
     gimbal_t = T0 + 7 * MS + np.arange(20) * 33_333_333  # 30 Hz, stops after 0.64 s
     path = _write(tmp_path / "u", dynamic_t=gimbal_t)
     with caplog.at_level(logging.WARNING):
