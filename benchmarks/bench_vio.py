@@ -10,7 +10,10 @@ locked at its mid position for ``scc``. Rendering is not timed. Then, in this pr
   ``processing time / data duration`` (the target is <= 0.5, i.e. at least 2x faster than real
   time), normalized translation RMSE and joint RMSE;
 * the baseline: the same runs with the front end inline (``worker="inline"``, one core); the ratio
-  of the two wall times is what the second core buys.
+  of the two wall times is what the second core buys;
+* the cost of the online time offsets (``dcc-fg vio``'s default): the front-end-process runs again
+  with the offsets held at 0 (``estimate_time_offsets=False``, the graph without exposure-time camera
+  poses); the ratios of wall time and accuracy of the two (``--no-offsets-baseline`` skips them).
 
 Machines here are shared and noisy: compare the ratios, not the absolute times.
 
@@ -63,14 +66,16 @@ def _flight(folder: Path, cfg: FlightConfig, seed: int, moving: bool) -> FlightB
     return fb
 
 
-def run_mode(fb: FlightBag, mode: str, parallel: bool) -> dict[str, Any]:
+def run_mode(fb: FlightBag, mode: str, parallel: bool, estimate_offsets: bool = True) -> dict[str, Any]:
     """One ``dcc`` or ``scc`` run over a rendered flight bag, timed and scored."""
     cal, imu = load_flight_calibration(fb.calibration)
     focal = float(cal.static_camera.intrinsics[0])  # type: ignore[union-attr]
     fixed = None
     if mode == "scc":
         fixed = tuple(yaml.safe_load(fb.calibration.read_text())["flight"]["joints_locked"])
-    opts = VioOptions(mode=mode, sigma=1.0 / focal, keyframe_every=3, theta_fixed=fixed)
+    opts = VioOptions(
+        mode=mode, sigma=1.0 / focal, keyframe_every=3, theta_fixed=fixed, estimate_time_offsets=estimate_offsets
+    )
     t0 = time.perf_counter()
     c0 = time.process_time()
     res, run = run_vio_bag(fb.bag, cal, imu, opts, pipeline=PipelineOptions(worker="process" if parallel else "inline"))
@@ -78,9 +83,12 @@ def run_mode(fb: FlightBag, mode: str, parallel: bool) -> dict[str, Any]:
     cpu = time.process_time() - c0
     gt = load_ground_truth(fb.bag)
     ev = evaluate_trajectory(res.timestamps_ns, res.T_WI, gt, "se3")
+    offsets = res.stats["time_offsets"]
     return {
         "mode": mode,
         "parallel": parallel,
+        "estimate_offsets": estimate_offsets,
+        "time_offsets_ms": [1e3 * offsets["static_s"], 1e3 * offsets.get("dynamic_s", 0.0)],
         "wall_s": wall,
         "data_s": res.stats["data_duration_s"],
         "real_time_factor": wall / res.stats["data_duration_s"],
@@ -98,6 +106,8 @@ def _line(r: dict[str, Any]) -> str:
     j = r["joint_rmse_rad"]
     jtxt = "" if j is None else "  joint RMSE " + ", ".join(f"{x:.2e}" for x in j) + " rad"
     kind = "front-end process" if r["parallel"] else "inline (baseline)"
+    if not r["estimate_offsets"]:
+        kind = "offsets held at 0"
     cpu = f"CPU {r['cpu_s']:.1f} s" + (
         f" + front-end process {r['frontend_process_cpu_s']:.1f} s" if r["frontend_process_cpu_s"] is not None else ""
     )
@@ -114,6 +124,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--keep", help="write the flights into this folder (default: a temporary one)")
     p.add_argument("--no-baseline", action="store_true", help="skip the inline front-end runs")
+    p.add_argument("--no-offsets-baseline", action="store_true", help="skip the runs with the time offsets held")
     a = p.parse_args(argv)
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(a.keep or tmp)
@@ -141,6 +152,20 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                 ratio = runs[(mode, False)]["wall_s"] / runs[(mode, True)]["wall_s"]
                 out[f"{mode}_inline_over_parallel"] = ratio
                 print(f"{mode}: inline front end / front-end process wall time: {ratio:.2f}")
+        if not a.no_offsets_baseline:
+            for mode in ("dcc", "scc"):
+                held = run_mode(flights[mode], mode, True, estimate_offsets=False)
+                out["runs"].append(held)
+                print(_line(held))
+                est = runs[(mode, True)]
+                t_ratio = est["wall_s"] / held["wall_s"]
+                e_ratio = est["normalized_translation_rmse_percent"] / held["normalized_translation_rmse_percent"]
+                out[f"{mode}_offsets_estimated_over_held_time"] = t_ratio
+                out[f"{mode}_offsets_estimated_over_held_rmse"] = e_ratio
+                print(
+                    f"{mode}: offsets estimated / held at 0: wall time {t_ratio:.2f}, translation RMSE {e_ratio:.2f} "
+                    f"(estimates {est['time_offsets_ms'][0]:.2f}, {est['time_offsets_ms'][1]:.2f} ms; truth 0)"
+                )
         worst = max(r["real_time_factor"] for r in out["runs"] if r["parallel"])
         print(
             f"largest real-time factor (front-end process): {worst:.3f} "

@@ -73,6 +73,22 @@ class CameraMount:
         return inv_se3(T_ds @ self.T_sI), G
 
 
+def exposure_rate(
+    T_WI: FloatArray,
+    v_W: FloatArray,
+    omega_I: FloatArray,
+    T_Ic: FloatArray,
+    G: FloatArray,
+    theta_rate: FloatArray,
+) -> FloatArray:
+    """``d T_Wc / d t`` as a right-perturbation twist of the camera (6,): ``Ad(T_Ic^-1) xi + G theta_rate``
+    (``T_Wc(t + dt) ~= T_Wc Exp(u dt)``), rad/s and m/s. A stamp error ``dt`` moves the modelled camera
+    pose by ``u dt``: :func:`exposure_pose_factor` adds this direction to its noise for stamp jitter."""
+    xi = twist(T_WI, v_W, omega_I)
+    Ad = gtsam.Pose3(np.asarray(T_Ic, float)).inverse().AdjointMap()
+    return Ad @ xi + np.asarray(G, float) @ np.asarray(theta_rate, float)
+
+
 def twist(T_WI: FloatArray, v_W: FloatArray, omega_I: FloatArray) -> FloatArray:
     """``xi = [omega_I, R_WI^T v_W]`` (6,): the body twist in I (rad/s, m/s)."""
     return np.r_[np.asarray(omega_I, float), np.asarray(T_WI, float)[:3, :3].T @ np.asarray(v_W, float)]
@@ -109,13 +125,18 @@ def exposure_pose_factor(
     theta_rate: FloatArray | None = None,
     sigma_rotation: float = 1e-4,
     sigma_translation: float = 1e-4,
+    jitter: FloatArray | None = None,
 ) -> gtsam.CustomFactor:
     """``e = Log(C^-1 T_Wc)``, ``C = T_WI Exp(delta xi) T_Ic(theta')`` (module docstring), in rad and m.
 
     ``delta = stamp_gap_s + t_c`` (``t_c`` the offset variable's entry, or ``fixed_offset_s``);
     ``theta' = theta_k + delta theta_rate``. ``omega_I`` and ``theta_rate`` (rad/s) are constants of
     the factor (a joint-rate *variable*, through the previous keyframe's angles, made gtsam's
-    Cholesky fail on the tightly constrained system). Jacobians, with ``M = Exp(delta xi)``, ``X = T_Ic(theta')``,
+    Cholesky fail on the tightly constrained system). Noise: ``sigma_rotation`` (rad) and
+    ``sigma_translation`` (m) per axis, plus ``jitter jitter^T`` when ``jitter`` (6,) is given: the
+    camera's motion during one standard deviation of the stamp jitter (``u sigma_jitter``,
+    :func:`exposure_rate`), so that an image whose stamp is off by its jitter is not a contradiction
+    of the tight tie. Jacobians, with ``M = Exp(delta xi)``, ``X = T_Ic(theta')``,
     ``D = C^-1 T_Wc``, ``A = -J_r^-1(e) Ad(D^-1)`` (the derivative of ``e`` by a right perturbation
     ``C Exp(eta)``), ``J_M = J_r(delta xi)``:
 
@@ -136,7 +157,11 @@ def exposure_pose_factor(
             raise ValueError("a gimbal-camera exposure factor needs the keyframe's joint-angle key")
         key_list.append(keys.theta)
     rate = np.zeros(mount.n_joints) if theta_rate is None else np.asarray(theta_rate, float).reshape(mount.n_joints)
-    noise = gtsam.noiseModel.Diagonal.Sigmas(np.r_[np.full(3, sigma_rotation), np.full(3, sigma_translation)])
+    sigmas = np.r_[np.full(3, sigma_rotation), np.full(3, sigma_translation)]
+    noise: gtsam.noiseModel.Base = gtsam.noiseModel.Diagonal.Sigmas(sigmas)
+    if jitter is not None and np.any(jitter):
+        w = np.asarray(jitter, float).reshape(6)
+        noise = gtsam.noiseModel.Gaussian.Covariance(np.diag(sigmas**2) + np.outer(w, w))
 
     def error(this: gtsam.CustomFactor, values: gtsam.Values, H: list[FloatArray] | None) -> FloatArray:
         T_WI = values.atPose3(keys.pose)

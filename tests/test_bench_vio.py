@@ -13,8 +13,11 @@ def test_bench_vio_runs(capsys) -> None:  # type: ignore[no-untyped-def]
     out = main(["--duration", "10"])  # a 6 s loop reaches 43 m/s, beyond the divergence bound max_speed
     text = capsys.readouterr().out
     assert "real-time factor" in text and "inline front end / front-end process" in text
-    assert len(out["runs"]) == 4
+    assert len(out["runs"]) == 6  # dcc, scc x (front-end process, inline, offsets held)
     for r in out["runs"]:
         assert r["wall_s"] > 0 and r["data_s"] > 4.0 and r["failed_updates"] == 0
         assert r["real_time_factor"] == r["wall_s"] / r["data_s"]
+        if r["estimate_offsets"]:  # synchronized flight, true offsets 0: the 1 ms
+            assert max(abs(x) for x in r["time_offsets_ms"]) < 1.0, r["time_offsets_ms"]
     assert out["dcc_inline_over_parallel"] > 0 and out["scc_inline_over_parallel"] > 0
+    assert out["dcc_offsets_estimated_over_held_time"] > 0 and "offsets estimated / held at 0" in text

@@ -9,7 +9,7 @@ import pytest
 
 from dcc_fg.sim.trajectory import default_static_mount, flight_calibration
 from factors.chain import inv_se3
-from factors.exposure import CameraMount, ExposureKeys, exposure_pose, exposure_pose_factor
+from factors.exposure import CameraMount, ExposureKeys, exposure_pose, exposure_pose_factor, exposure_rate
 from factors.vio import ChainCache
 
 X, V, C, O, TH = (gtsam.symbol(c, 0) for c in "xvcot")
@@ -82,6 +82,8 @@ def test_gimbal_exposure_factor_jacobians(seed: int) -> None:
     rate = rng.normal(size=cal.n_joints)  # rad/s
     _check(exposure_pose_factor(keys, mount, rng.uniform(-0.04, 0.04), rng.normal(size=3), 0.0, rate), values)
     _check(exposure_pose_factor(keys, mount, rng.uniform(-0.04, 0.04), rng.normal(size=3)), values)
+    jitter = rng.normal(size=6) * 1e-3  # the camera's motion in one sigma of stamp jitter: a full covariance
+    _check(exposure_pose_factor(keys, mount, 0.01, rng.normal(size=3), 0.0, rate, 1e-4, 1e-4, jitter), values)
     fixed = ExposureKeys(X, V, C, theta=TH)
     _check(exposure_pose_factor(fixed, mount, rng.uniform(-0.04, 0.04), rng.normal(size=3), 0.015, rate), values)
 
@@ -113,3 +115,15 @@ def test_constant_twist_model_matches_exact_constant_twist_motion() -> None:
         exact = T0.compose(gtsam.Pose3.Expmap(delta * np.r_[omega, v_I])).matrix()
         model = exposure_pose(T0.matrix(), v_W, omega, delta, np.eye(4))
         np.testing.assert_allclose(model, exact, atol=1e-12)
+
+
+def test_exposure_rate_is_the_derivative_of_the_exposure_pose() -> None:
+    """``T_Wc(delta + dt) = T_Wc(delta) Exp(u dt)`` for the static camera (constant mount)."""
+    rng = np.random.default_rng(11)
+    T_WI = gtsam.Pose3(gtsam.Rot3.Expmap(rng.normal(size=3)), rng.normal(size=3)).matrix()
+    v, omega, T_Ic = rng.normal(size=3), rng.normal(size=3), inv_se3(default_static_mount())
+    u = exposure_rate(T_WI, v, omega, T_Ic, np.zeros((6, 0)), np.zeros(0))
+    h = 1e-6
+    a = gtsam.Pose3(exposure_pose(T_WI, v, omega, 0.01 - h, T_Ic))
+    b = gtsam.Pose3(exposure_pose(T_WI, v, omega, 0.01 + h, T_Ic))
+    np.testing.assert_allclose(gtsam.Pose3.Logmap(a.between(b)) / (2 * h), u, atol=1e-6)

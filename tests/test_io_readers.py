@@ -24,7 +24,7 @@ from dcc_fg.io.camchain import CamchainEntry
 from dcc_fg.io.folders import FramePair, ImageFolder, read_joints_csv, write_image_folder
 from dcc_fg.io.layout import detect_layout
 from dcc_fg.io.outputs import read_joint_angles_csv, write_joint_angles_csv
-from dcc_fg.io.pairing import check_pairing, nearest_within, pair_timestamps
+from dcc_fg.io.pairing import check_pairing, nearest_within, pair_timestamps, stamp_jitter_s
 from dcc_fg.io.tum import read_tum, write_tum
 from dcc_fg.sources.dataset import load_dataset
 from dcc_fg.sources.detections import read_detection_csv, read_detection_folder, write_detection_csv
@@ -483,3 +483,21 @@ def test_load_dataset_detection_folder_real() -> None:
     assert len(ds.snapshots) == 30 and ds.target_points.shape == (144, 3)
     with pytest.raises(ValueError, match="differs from the expected"):
         load_dataset(root, chain, TargetGeometry.aprilgrid(6, 6, 0.05, 0.3), progress=False)
+
+
+def test_stamp_jitter_from_regular_skipped_and_drifting_streams() -> None:
+    """1-sigma of header stamps around their grid: 0 for exact 30 Hz stamps; the drawn jitter for a
+    jittered stream, also when only every static frame's nearest image is kept (30 Hz paired with
+    20 Hz: intervals of one and two periods) and when the camera clock runs 100 ppm fast."""
+    rng = np.random.default_rng(3)
+    k = np.arange(600)
+    exact = np.round(k * 1e9 / 30.0).astype(np.int64)
+    assert stamp_jitter_s(exact) < 1e-9
+    for sigma in (1e-4, 5e-4):
+        jittered = exact + np.round(rng.normal(0, sigma * 1e9, k.size)).astype(np.int64)
+        assert stamp_jitter_s(jittered) == pytest.approx(sigma, rel=0.15)
+        paired = jittered[np.unique(np.round(np.arange(400) * 1.5).astype(int))]  # every 20 Hz frame's nearest
+        assert stamp_jitter_s(paired) == pytest.approx(sigma, rel=0.2)
+        drift = (jittered * (1 + 1e-4)).astype(np.int64)
+        assert stamp_jitter_s(drift) == pytest.approx(sigma, rel=0.15)
+    assert stamp_jitter_s([0, 1, 2]) == 0.0

@@ -57,7 +57,7 @@ from dcc_fg.data.vio import (
 )
 from dcc_fg.detection import to_gray8
 from dcc_fg.io.bags import scan_imu_and_image_stamps, stream_image_groups
-from dcc_fg.io.pairing import median_period_ms, pair_timestamps
+from dcc_fg.io.pairing import median_period_ms, pair_timestamps, stamp_jitter_s
 
 log = logging.getLogger(__name__)
 
@@ -330,6 +330,12 @@ class VioBag:
 
     def __len__(self) -> int:
         return len(self._pairs)
+
+    def stamp_jitter(self) -> tuple[float, float]:
+        """1-sigma (s) of the static and gimbal image stamps around a regular grid
+        (:func:`~dcc_fg.io.pairing.stamp_jitter_s`; the static camera's twice in a static-only bag)."""
+        static = stamp_jitter_s(self._stamps[self.static_topic])
+        return static, stamp_jitter_s(self._stamps[self.dynamic_topic]) if self.dynamic_topic else static
 
     def period_s(self, topic: str) -> float | None:
         """Median frame period of an image topic, s (None for fewer than two images)."""

@@ -18,6 +18,11 @@ their thresholds (``options``: :class:`~dcc_fg.vio.backend.options.VioOptions`; 
   zero-velocity update) no longer than two smoother windows (``2 lag``; one window can pass at a
   start from standstill before the motion gives the parallax to triangulate): beyond it the
   trajectory is IMU dead reckoning (an IMU clock offset or rate problem, a camera facing nothing);
+* ``time_offsets.range`` (offsets estimated): every offset estimate within
+  ``TIME_OFFSET_PRIOR_SIGMAS`` prior sigmas (``time_offset_prior_sigma``) of its start value; farther
+  means the prior was wrong by far more than it claimed, or the estimate ran away;
+* ``time_offsets.determined`` (warning): every offset's 1-sigma below half its prior sigma, i.e. the
+  data determined it (too little rotation or motion leaves it at the start value);
 * ``segments`` (always passes, informative): how many trajectory segments the run has.
 
 Frames and units: ``T_WI`` body/IMU -> world, m, m/s, s.
@@ -81,6 +86,54 @@ def _jump_check(result: VioResult, limits: DivergenceLimits) -> HealthCheck:
         worst_ratio,
         1.0,
     )
+
+
+#: ``time_offsets.range``: largest move of an offset estimate from its start value, in prior sigmas.
+TIME_OFFSET_PRIOR_SIGMAS = 4.0
+
+
+def _time_offset_checks(offsets: dict[str, Any], options: VioOptions) -> list[HealthCheck]:
+    """``time_offsets.range`` and ``time_offsets.determined`` (module docstring)."""
+    prior = options.time_offset_prior_sigma
+    cams = [c for c in ("static", "dynamic") if f"{c}_s" in offsets]
+    moved = {c: abs(float(offsets[f"{c}_s"]) - float(offsets["start_s"][c])) for c in cams}
+    worst = max(moved, key=lambda c: moved[c])
+    limit = TIME_OFFSET_PRIOR_SIGMAS * prior
+    ok = moved[worst] <= limit
+    text = ", ".join(f"t_{c[0]} {1e3 * float(offsets[f'{c}_s']):.2f} ms" for c in cams)
+    checks = [
+        HealthCheck(
+            "time_offsets.range",
+            ok,
+            f"offset estimates {text}; largest move from the start value {1e3 * moved[worst]:.1f} ms ({worst} camera; "
+            f"limit {TIME_OFFSET_PRIOR_SIGMAS:g} prior sigmas = {1e3 * limit:.0f} ms)",
+            ""
+            if ok
+            else "the offset left its prior: start closer to the true delay (--time-offsets T_S,T_D), raise "
+            "smoother.time_offset_prior_sigma if the start really is that uncertain, or check the stamps",
+            moved[worst],
+            limit,
+        )
+    ]
+    sigmas = {c: offsets.get(f"{c}_sigma_s") for c in cams}
+    loose = [c for c in cams if sigmas[c] is None or sigmas[c] > 0.5 * prior]
+    checks.append(
+        HealthCheck(
+            "time_offsets.determined",
+            not loose,
+            "offset 1-sigma "
+            + ", ".join(f"t_{c[0]} {'unknown' if sigmas[c] is None else f'{1e3 * sigmas[c]:.3f} ms'}" for c in cams)
+            + f" (prior {1e3 * prior:g} ms)",
+            ""
+            if not loose
+            else f"the data hardly determined the {' and '.join(loose)} camera's offset (too little rotation or "
+            "motion): it stays near its start value; give a known value with --time-offsets and --fix-time-offsets",
+            max((s or np.inf) for s in sigmas.values()),
+            0.5 * prior,
+            severity="warning",
+        )
+    )
+    return checks
 
 
 def vio_health(result: VioResult, imu: ImuConfig, options: VioOptions) -> HealthReport:
@@ -175,6 +228,10 @@ def vio_health(result: VioResult, imu: ImuConfig, options: VioOptions) -> Health
                 limit,
             )
         )
+    offsets = stats.get("time_offsets")
+    if offsets is not None and offsets.get("estimated"):
+        for check in _time_offset_checks(offsets, options):
+            report.add(check)
     segments = stats.get("segments", [])
     report.add(
         HealthCheck(

@@ -332,6 +332,8 @@ def run_vio_bag(
         gyro_range=imu_config.gyro_range,
     )
     check_time_offsets(vb, options)
+    if options.stamp_jitter is None:
+        options = dataclasses.replace(options, stamp_jitter=vb.stamp_jitter())
     t_first, t_last = int(vb.imu.t_ns[0]), int(vb.imu.t_ns[-1])
     t_min = t_first if initial is None else max(t_first, int(initial.t_ns))
     guess = joint_angle_guess(options, initial)

@@ -20,7 +20,9 @@ without offsets is exactly the same graph as before.
 The body twist of a keyframe is its velocity and the gyro's mean rate over the exposure interval
 (minus the gyro bias estimate at the keyframe's creation), a constant of the factor; the joints
 move at the rate from the previous keyframe's estimate to this keyframe's starting value (a
-constant too). Times: ns for stamps, s for offsets; rad, m.
+constant too). Header stamps scattered around the exposure times (``stamp_jitter``, s, per camera)
+loosen each tie along the camera's motion (:func:`factors.exposure.exposure_rate`): without it the
+offsets' 1-sigma would count every image as exactly timed. Times: ns for stamps, s for offsets; rad, m.
 """
 
 from __future__ import annotations
@@ -40,7 +42,7 @@ from dcc_fg.vio.backend.keys import (
     velocity_key,
 )
 from dcc_fg.vio.backend.options import NS, FloatArray, VioOptions
-from factors.exposure import CameraMount, ExposureKeys, exposure_pose, exposure_pose_factor
+from factors.exposure import CameraMount, ExposureKeys, exposure_pose, exposure_pose_factor, exposure_rate
 
 STATIC = 0
 GIMBAL = 1
@@ -82,6 +84,7 @@ class ExposureModel:
         self.offsets = np.asarray(options.offsets, float)
         self.sigma = np.full(2, options.time_offset_prior_sigma)
         self.timed: dict[int, dict[int, ImageTiming]] = {}
+        self.jitter = np.zeros(2) if options.stamp_jitter is None else np.asarray(options.stamp_jitter, float)
 
     # ------------------------------------------------------------------ offsets variable
     def anchor(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, stamps: dict[int, int], t: int) -> None:
@@ -186,6 +189,12 @@ class ExposureModel:
             rate = (np.asarray(theta, float) - np.asarray(previous[1], float)) / ((t_ns - previous[0]) / NS)
         self.timed.setdefault(k, {})[cam] = ImageTiming(stamp_gap_s, omega, rate)
         key = static_camera_key(k) if cam == STATIC else camera_key(k)
+        jitter = None
+        if self.jitter[cam] > 0:
+            th = None if theta is None or not mount.on_gimbal else np.asarray(theta, float) + delta0 * rate
+            T_Ic, G = mount(th)
+            u = exposure_rate(pose.matrix(), np.asarray(velocity, float), omega, T_Ic, G, rate)
+            jitter = self.jitter[cam] * u
         T_Wc = self.T_Wc(k, cam, pose.matrix(), np.asarray(velocity, float), theta)
         assert T_Wc is not None
         values.insert(key, gtsam.Pose3(T_Wc))
@@ -199,7 +208,9 @@ class ExposureModel:
             theta_key(k) if mount.on_gimbal else None,
         )
         sig = self.opt.camera_pose_sigma
-        graph.add(exposure_pose_factor(keys, mount, stamp_gap_s, omega, float(self.offsets[cam]), rate, sig, sig))
+        graph.add(
+            exposure_pose_factor(keys, mount, stamp_gap_s, omega, float(self.offsets[cam]), rate, sig, sig, jitter)
+        )
 
     def forget(self, before_k: int) -> None:
         """Drop the timing of keyframes before ``before_k`` (left the window, or lost in a failed update)."""
@@ -213,6 +224,7 @@ class ExposureModel:
             "convention": "t_imu = t_cam_stamp + t_offset",
             "estimated": self.estimate,
             "start_s": {"static": self.opt.offsets[0], "dynamic": self.opt.offsets[1]},
+            "stamp_jitter_s": {"static": float(self.jitter[STATIC]), "dynamic": float(self.jitter[GIMBAL])},
             "static_s": float(self.offsets[STATIC]),
             "static_sigma_s": None if sigma is None else float(sigma[STATIC]),
         }

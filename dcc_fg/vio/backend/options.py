@@ -45,6 +45,8 @@ class VioOptions:
     ``calib_camimu_dt``, Kalibr ``timeshift_cam_imu``);
     ``estimate_time_offsets`` makes them a state of the smoother with a prior of
     ``time_offset_prior_sigma`` (s) around the start values (False: held at the start values).
+    ``stamp_jitter`` = 1-sigma (s) of each camera's header stamps around its exposure times (None:
+    measured from the stamps by :func:`~dcc_fg.vio.backend.runner.run_vio` and ``dcc-fg vio``).
     """
 
     mode: str = "dcc"
@@ -91,6 +93,7 @@ class VioOptions:
     time_offsets: tuple[float, float] | None = None
     estimate_time_offsets: bool = True
     time_offset_prior_sigma: float = 0.01
+    stamp_jitter: tuple[float, float] | None = None
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -111,6 +114,10 @@ class VioOptions:
             value = getattr(self, name)
             if not (np.isfinite(value) and value > 0):
                 raise ValueError(f"smoother option '{name}' must be a positive number, got {value!r}")
+        if self.stamp_jitter is not None and (
+            len(self.stamp_jitter) != 2 or not all(np.isfinite(x) and x >= 0 for x in self.stamp_jitter)
+        ):
+            raise ValueError(f"stamp_jitter must be two numbers >= 0 (s), got {self.stamp_jitter!r}")
         t = self.offsets
         if len(t) != 2 or not all(np.isfinite(x) for x in t):
             raise ValueError(f"time_offsets must be two finite numbers (t_s, t_d in s), got {self.time_offsets!r}")

@@ -5,6 +5,7 @@ Times in ns (:data:`~.options.NS` per second); ``T_WI`` body/IMU -> W.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from collections.abc import Callable
@@ -12,6 +13,7 @@ from collections.abc import Callable
 import numpy as np
 
 from dcc_fg.data.vio import ImuConfig, ImuSamples, TrackFrame, check_imu_against_frames, imu_out_of_range
+from dcc_fg.io.pairing import stamp_jitter_s
 from dcc_fg.model import GimbalCalibration
 from dcc_fg.vio.backend.landmarks import validate_frames
 from dcc_fg.vio.backend.options import NS, InitialState, VioOptions, VioResult
@@ -37,6 +39,8 @@ def run_vio(
     """
     options = options or VioOptions()
     validate_frames(frames)
+    if options.stamp_jitter is None:
+        options = dataclasses.replace(options, stamp_jitter=frame_stamp_jitter(frames))
     t_start = time.perf_counter()
     imu, dropped = drop_implausible_imu(imu, imu_config)
     check_imu_against_frames(imu.t_ns, np.array([f.timestamp_ns for f in frames], dtype=np.int64), "imu")
@@ -58,6 +62,14 @@ def run_vio(
     duration = (frames[-1].timestamp_ns - frames[0].timestamp_ns) / NS
     res.stats.update(timing_stats(time.perf_counter() - t_start, duration, len(frames)))
     return res
+
+
+def frame_stamp_jitter(frames: list[TrackFrame]) -> tuple[float, float]:
+    """Stamp jitter (s, 1-sigma) of the static and the gimbal images of ``frames``
+    (:func:`~dcc_fg.io.pairing.stamp_jitter_s`; the gimbal's 0 when its stamps are the static ones)."""
+    static = [f.timestamp_ns for f in frames]
+    gimbal = [f.dynamic_timestamp_ns for f in frames if f.dynamic_timestamp_ns is not None]
+    return stamp_jitter_s(static), stamp_jitter_s(gimbal) if gimbal else stamp_jitter_s(static)
 
 
 def drop_implausible_imu(imu: ImuSamples, config: ImuConfig) -> tuple[ImuSamples, int]:
