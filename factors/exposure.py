@@ -57,6 +57,10 @@ class CameraMount:
         self.cache = cache
         self.T_sI = None if T_sI is None else np.asarray(T_sI, float)
         self.n_joints = 0 if cache is None else cache.L
+        self._memo: tuple[bytes, gtsam.Pose3, FloatArray, FloatArray] | None = None
+        if self.T_Ic is not None:
+            X = gtsam.Pose3(self.T_Ic)
+            self._memo = (b"", X, X.inverse().AdjointMap(), np.zeros((6, 0)))
 
     @property
     def on_gimbal(self) -> bool:
@@ -71,6 +75,19 @@ class CameraMount:
         # T_sd(theta + d) = T_sd Exp(-Ad(T_ds) J d) and T_Id = T_Is T_sd
         G = -gtsam.Pose3(T_ds).AdjointMap() @ J
         return inv_se3(T_ds @ self.T_sI), G
+
+    def pose(self, theta: FloatArray | None) -> tuple[gtsam.Pose3, FloatArray, FloatArray]:
+        """``(T_Ic as Pose3, Ad(T_Ic^-1), G)``, memoized for the last joint angles (a factor is
+        linearized at the same angles many times; the static mount is computed once)."""
+        if self.cache is None:
+            assert self._memo is not None
+            return self._memo[1], self._memo[2], self._memo[3]
+        key = np.asarray(theta, float).tobytes()
+        if self._memo is None or self._memo[0] != key:
+            T_Ic, G = self(theta)
+            X = gtsam.Pose3(T_Ic)
+            self._memo = (key, X, X.inverse().AdjointMap(), G)
+        return self._memo[1], self._memo[2], self._memo[3]
 
 
 def exposure_rate(
@@ -171,23 +188,21 @@ def exposure_pose_factor(
         t_c = fixed_offset_s if keys.offsets is None else float(values.atVector(keys.offsets)[keys.offset_index])
         delta = stamp_gap_s + t_c
         theta_c = values.atVector(keys.theta) + delta * rate if gimbal else None
-        X_mat, G = mount(theta_c)
-        X = gtsam.Pose3(X_mat)
+        X, AdXinv, G = mount.pose(theta_c)
         v_I = R.T @ v
         xi = np.r_[omega, v_I]
         M = gtsam.Pose3.Expmap(delta * xi)
         MX = M.compose(X)
-        C = T_WI.compose(MX)
-        D = C.between(T_Wc)
+        D = T_WI.compose(MX).between(T_Wc)
         e = gtsam.Pose3.Logmap(D)
         if H is not None:
             Jinv = gtsam.Pose3.LogmapDerivative(e)
             A = -Jinv @ D.inverse().AdjointMap()
-            AdXinv = X.inverse().AdjointMap()
-            B = A @ AdXinv @ gtsam.Pose3.ExpmapDerivative(delta * xi)  # d e / d xi, per unit delta
+            AdXinv_J = AdXinv @ gtsam.Pose3.ExpmapDerivative(delta * xi)
+            B = A @ AdXinv_J  # d e / d xi, per unit delta
             dxi_dpose = np.zeros((6, 6))
             dxi_dpose[3:, :3] = skew(v_I)
-            out = [A @ MX.inverse().AdjointMap() + delta * B @ dxi_dpose]
+            out = [A @ (AdXinv @ M.inverse().AdjointMap()) + delta * B @ dxi_dpose]
             dxi_dv = np.zeros((6, 3))
             dxi_dv[3:, :] = R.T
             out.append(delta * B @ dxi_dv)

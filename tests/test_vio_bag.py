@@ -16,6 +16,8 @@ from dcc_fg.io.bag_writer import BagWriter
 from dcc_fg.io.bags import bag_messages, open_bag
 from dcc_fg.model import load_calibration
 from dcc_fg.sources.vio_bag import VioBag, VioFrame
+from dcc_fg.vio.backend import VioOptions
+from dcc_fg.vio.pipeline import check_time_offsets
 
 T0 = 1_600_000_000_000_000_000
 MS = 1_000_000
@@ -105,6 +107,20 @@ def test_unsynchronized_gimbal_stream_is_paired_by_exposure_time(tmp_path: Path,
     pairs = [(f.timestamp_ns, f.dynamic_timestamp_ns) for f in shifted.frames() if f.dynamic is not None]
     exposure_gap = np.array([d + 40 * MS - s for s, d in pairs])
     assert len(pairs) >= 12 and np.abs(exposure_gap).max() <= 25 * MS and np.median(np.abs(exposure_gap)) <= 17 * MS
+
+
+def test_start_offsets_beyond_half_or_one_frame_period(tmp_path: Path, caplog) -> None:
+    """Start values of the time offsets: beyond half the 50 ms frame period a logged warning (images
+    are paired by stamp + offset), beyond one period a refusal naming the topic, period and offset."""
+    vb = VioBag(_write(tmp_path / "h"), "/imu0", "/cam0/image_raw", "/cam1/image_raw")
+    check_time_offsets(vb, VioOptions(time_offsets=(0.01, -0.02)))  # within half a period: silent
+    with caplog.at_level(logging.WARNING):
+        check_time_offsets(vb, VioOptions(time_offsets=(0.03, 0.0)))
+    assert "more than half a frame period (50.0 ms)" in caplog.text
+    with pytest.raises(
+        ValueError, match=r"topic /cam1/image_raw: .* gimbal camera's time offset is 80 ms, more than one"
+    ):
+        check_time_offsets(vb, VioOptions(time_offsets=(0.0, 0.08)))
 
 
 def test_image_stamps_out_of_record_order_are_sorted(tmp_path: Path, caplog) -> None:

@@ -12,10 +12,14 @@ The offsets ``[t_s, t_d]`` are one ``Vector 2`` variable ``o(0)`` for the whole 
 prior (``time_offset_prior_sigma`` around the start values ``time_offsets``), timed with the newest
 keyframe at every update so the fixed-lag smoother never marginalizes it; after a restart of the
 window it is re-anchored at its estimate with its marginal sigma. With
-``estimate_time_offsets=False`` they are constants. An image is *timed* when its offset is estimated,
-not zero, or (gimbal) its stamp differs from the keyframe's; untimed images keep the direct factors
-(static: on ``x(k)``; gimbal: :func:`factors.vio.gimbal_camera_pose_factor`), so a synchronized run
-without offsets is exactly the same graph as before.
+``estimate_time_offsets=False`` they are constants. Once both offsets' 1-sigma fall below
+``time_offset_freeze_sigma`` they are held at their estimate from then on (:meth:`ExposureModel.maybe_freeze`;
+the auxiliary static pose then costs more than the offsets still gain). An image is *timed* (an
+auxiliary pose) when its offset is estimated, or (gimbal) not zero or its stamp differs from the
+keyframe's; a static image at a known non-zero offset projects from ``x(k)`` through a fixed mount per
+keyframe (:meth:`ExposureModel.add_static_shift`); untimed images keep the direct factors (static: on
+``x(k)``; gimbal: :func:`factors.vio.gimbal_camera_pose_factor`), so a synchronized run without
+offsets is exactly the same graph as before.
 
 The body twist of a keyframe is its velocity and the gyro's mean rate over the exposure interval
 (minus the gyro bias estimate at the keyframe's creation), a constant of the factor; the joints
@@ -27,6 +31,7 @@ offsets' 1-sigma would count every image as exactly timed. Times: ns for stamps,
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 
 import gtsam
@@ -46,6 +51,9 @@ from factors.exposure import CameraMount, ExposureKeys, exposure_pose, exposure_
 
 STATIC = 0
 GIMBAL = 1
+log = logging.getLogger(__name__)
+#: Keyframes between two convergence checks of :meth:`ExposureModel.maybe_freeze`.
+FREEZE_CHECK_EVERY = 10
 #: Smallest offset sigma (s) carried across a restart of the window.
 MIN_RESTART_SIGMA_S = 1e-5
 
@@ -81,16 +89,24 @@ class ExposureModel:
         self.imu = imu
         self.mounts = mounts
         self.estimate = bool(options.estimate_time_offsets)
+        self.active = self.estimate  # the offsets are a variable of the window (until frozen)
         self.offsets = np.asarray(options.offsets, float)
         self.sigma = np.full(2, options.time_offset_prior_sigma)
         self.timed: dict[int, dict[int, ImageTiming]] = {}
+        self.static_shift: dict[int, gtsam.Pose3] = {}
+        self.started_ns: int | None = None
+        self.frozen_at_ns: int | None = None
+        self.frozen_sigma: FloatArray | None = None
+        self.checks = 0
         self.jitter = np.zeros(2) if options.stamp_jitter is None else np.asarray(options.stamp_jitter, float)
 
     # ------------------------------------------------------------------ offsets variable
     def anchor(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, stamps: dict[int, int], t: int) -> None:
         """A (fresh) window: the offsets variable with its prior (start values, or the estimate and
         its marginal sigma after a restart)."""
-        if not self.estimate:
+        if self.started_ns is None:
+            self.started_ns = t
+        if not self.active:
             return
         values.insert(offsets_key, self.offsets.copy())
         graph.add(
@@ -100,17 +116,18 @@ class ExposureModel:
 
     def touch(self, stamps: dict[int, int], t: int) -> None:
         """Keep the offsets in the window: time them with the newest keyframe."""
-        if self.estimate:
+        if self.active:
             stamps[offsets_key] = t
 
     def refresh(self, estimate: gtsam.Values) -> None:
-        if self.estimate and estimate.exists(offsets_key):
+        if self.active and estimate.exists(offsets_key):
             self.offsets = np.asarray(estimate.atVector(offsets_key), float).copy()
 
     def marginal_sigma(self, smoother: object) -> FloatArray | None:
-        """1-sigma (s) of the offsets from the window's marginal covariance (None if unavailable)."""
-        if not self.estimate:
-            return None
+        """1-sigma (s) of the offsets from the window's marginal covariance (None if unavailable); after
+        freezing, the 1-sigma they had then."""
+        if not self.active:
+            return self.frozen_sigma
         try:
             cov = np.asarray(smoother.marginalCovariance(offsets_key), float)  # type: ignore[attr-defined]
         except (RuntimeError, IndexError):  # indeterminant, or the key is not in a (failed) Bayes tree
@@ -123,12 +140,55 @@ class ExposureModel:
         if sigma is not None and np.all(np.isfinite(sigma)):
             self.sigma = np.clip(sigma, MIN_RESTART_SIGMA_S, self.opt.time_offset_prior_sigma)
 
+    def maybe_freeze(self, smoother: object, t_ns: int) -> None:
+        """Hold the offsets at their estimate once every used camera's 1-sigma is below
+        ``time_offset_freeze_sigma`` (checked every :data:`FREEZE_CHECK_EVERY` keyframes, at least one
+        window ``lag`` after the start): from then on the images need no auxiliary static pose and the
+        smoother runs at the cost of a run with known offsets."""
+        limit = self.opt.time_offset_freeze_sigma
+        if not self.active or limit is None or self.started_ns is None:
+            return
+        self.checks += 1
+        if self.checks % FREEZE_CHECK_EVERY or t_ns - self.started_ns < self.opt.lag * NS:
+            return
+        sigma = self.marginal_sigma(smoother)
+        if sigma is None or not all(sigma[c] < limit for c in self.mounts):
+            return
+        self.active = False
+        self.frozen_at_ns = t_ns
+        self.frozen_sigma = sigma.copy()
+        log.info(
+            "time offsets %s ms (1-sigma %s ms) determined at t_ns %d: held from here on",
+            np.round(1e3 * self.offsets, 3),
+            np.round(1e3 * sigma, 4),
+            t_ns,
+        )
+
     # ------------------------------------------------------------------ images
     def static_timed(self) -> bool:
-        return self.estimate or self.offsets[STATIC] != 0.0
+        """The static image needs an auxiliary pose (offset estimated)."""
+        return self.active
+
+    def static_shifted(self) -> bool:
+        """The static image is at a known, non-zero offset from its keyframe: a fixed mount per keyframe."""
+        return not self.active and self.offsets[STATIC] != 0.0
 
     def gimbal_timed(self, stamp_gap_s: float) -> bool:
-        return self.estimate or self.offsets[GIMBAL] != 0.0 or stamp_gap_s != 0.0
+        return self.active or self.offsets[GIMBAL] != 0.0 or stamp_gap_s != 0.0
+
+    def add_static_shift(
+        self, k: int, t_ns: int, pose: gtsam.Pose3, velocity: FloatArray, gyro_bias: FloatArray
+    ) -> gtsam.Pose3:
+        """Known static offset: the body -> static camera transform at the image's exposure,
+        ``T_I,s = Exp(t_s xi) T_Is`` with the keyframe's predicted twist (a velocity error dv moves it by
+        ``t_s dv``: 0.05 mm for 5 ms and 1 cm/s), for gtsam's C++ projection factors on ``x(k)``."""
+        delta = float(self.offsets[STATIC])
+        omega = mean_gyro(self.imu, t_ns, t_ns + int(round(delta * NS))) - np.asarray(gyro_bias, float)
+        mount, _, _ = self.mounts[STATIC].pose(None)
+        shift = gtsam.Pose3(exposure_pose(np.eye(4), pose.rotation().matrix().T @ np.asarray(velocity, float), omega,
+                                          delta, mount.matrix()))  # fmt: skip
+        self.static_shift[k] = shift
+        return shift
 
     def is_timed(self, k: int, cam: int) -> bool:
         return cam in self.timed.get(k, {})
@@ -203,7 +263,7 @@ class ExposureModel:
             pose_key(k),
             velocity_key(k),
             key,
-            offsets_key if self.estimate else None,
+            offsets_key if self.active else None,
             cam,
             theta_key(k) if mount.on_gimbal else None,
         )
@@ -216,6 +276,8 @@ class ExposureModel:
         """Drop the timing of keyframes before ``before_k`` (left the window, or lost in a failed update)."""
         for kk in [kk for kk in self.timed if kk < before_k]:
             del self.timed[kk]
+        for kk in [kk for kk in self.static_shift if kk < before_k]:
+            del self.static_shift[kk]
 
     def summary(self, smoother: object, gimbal: bool) -> dict[str, object]:
         """``time_offsets`` block of the result: estimates and 1-sigma (s), the convention."""
@@ -223,6 +285,7 @@ class ExposureModel:
         out: dict[str, object] = {
             "convention": "t_imu = t_cam_stamp + t_offset",
             "estimated": self.estimate,
+            "held_from_ns": self.frozen_at_ns,
             "start_s": {"static": self.opt.offsets[0], "dynamic": self.opt.offsets[1]},
             "stamp_jitter_s": {"static": float(self.jitter[STATIC]), "dynamic": float(self.jitter[GIMBAL])},
             "static_s": float(self.offsets[STATIC]),

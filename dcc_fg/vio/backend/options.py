@@ -45,8 +45,10 @@ class VioOptions:
     ``calib_camimu_dt``, Kalibr ``timeshift_cam_imu``);
     ``estimate_time_offsets`` makes them a state of the smoother with a prior of
     ``time_offset_prior_sigma`` (s) around the start values (False: held at the start values).
-    ``stamp_jitter`` = 1-sigma (s) of each camera's header stamps around its exposure times (None:
-    measured from the stamps by :func:`~dcc_fg.vio.backend.runner.run_vio` and ``dcc-fg vio``).
+    ``time_offset_freeze_sigma`` (s): once every estimated offset's 1-sigma is below it, the offsets
+    are held at their estimate (None: estimated to the end). ``stamp_jitter`` = 1-sigma (s) of each
+    camera's header stamps around its exposure times (None: measured from the stamps by
+    :func:`~dcc_fg.vio.backend.runner.run_vio` and ``dcc-fg vio``).
     """
 
     mode: str = "dcc"
@@ -94,6 +96,7 @@ class VioOptions:
     estimate_time_offsets: bool = True
     time_offset_prior_sigma: float = 0.01
     stamp_jitter: tuple[float, float] | None = None
+    time_offset_freeze_sigma: float | None = 1e-4
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -114,6 +117,8 @@ class VioOptions:
             value = getattr(self, name)
             if not (np.isfinite(value) and value > 0):
                 raise ValueError(f"smoother option '{name}' must be a positive number, got {value!r}")
+        if self.time_offset_freeze_sigma is not None and not self.time_offset_freeze_sigma > 0:
+            raise ValueError(f"time_offset_freeze_sigma must be > 0 s or None, got {self.time_offset_freeze_sigma!r}")
         if self.stamp_jitter is not None and (
             len(self.stamp_jitter) != 2 or not all(np.isfinite(x) and x >= 0 for x in self.stamp_jitter)
         ):

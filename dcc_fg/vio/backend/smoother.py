@@ -158,6 +158,9 @@ class VioSmoother:
             theta = self._theta_at(k)
         est = self.estimates[k]
         T = self.exposure.T_Wc(k, cam, est.T_WI, est.v_W, theta)
+        shift = self.exposure.static_shift.get(k) if cam == STATIC else None
+        if T is None and shift is not None:
+            T = est.T_WI @ shift.matrix()
         return T if T is not None else self.rig.T_Wc(est.T_WI, cam, theta)
 
     def _add_camera_poses(
@@ -176,6 +179,8 @@ class VioSmoother:
         gyro_bias = self.bias.gyroscope()
         if self.exposure.static_timed():
             self.exposure.add_image(k, STATIC, t, 0.0, pose, velocity, gyro_bias, None, None, graph, values, stamps)
+        elif self.exposure.static_shifted():
+            self.exposure.add_static_shift(k, t, pose, velocity, gyro_bias)
         if self.opt.mode == "mono":
             return
         gap = frame.dynamic_gap_s
@@ -626,6 +631,9 @@ class VioSmoother:
         if self.exposure.is_timed(k, cam):
             key = static_camera_key(k) if cam == STATIC else camera_key(k)
             return self.rig.project_camera(z, key, landmark_key(lm))
+        shift = self.exposure.static_shift.get(k) if cam == STATIC else None
+        if shift is not None:
+            return self.rig.project_shifted(z, pose_key(k), landmark_key(lm), shift)
         return self.rig.observation_factor(k, cam, lm, z)
 
     def _triangulate_ready(
@@ -662,6 +670,7 @@ class VioSmoother:
                 {"t_ns": self.kf_times[self.k], "keyframe": self.k, "reason": f"failed update: {error}"}
             )
         self._refresh()
+        self.exposure.maybe_freeze(self.window.smoother, self.kf_times[self.k])
 
     def _refresh(self) -> None:
         """Estimates of the window's keyframes, the newest navigation state, bias, joint angles and
