@@ -186,6 +186,8 @@ def gimbal_camera_pose_factor(
     T_sI: FloatArray,
     sigma_rotation: float = 1e-5,
     sigma_translation: float = 1e-5,
+    body_motion: FloatArray | None = None,
+    theta_shift: FloatArray | None = None,
 ) -> gtsam.CustomFactor:
     """Ties an auxiliary gimbal-camera pose ``T_Wd`` to the body pose and joint angles (eq. 13).
 
@@ -195,22 +197,31 @@ def gimbal_camera_pose_factor(
     ``[pose (Pose3 T_WI), theta (Vector L), camera (Pose3 T_Wd)]``. Jacobians, with ``D = C^-1 T_Wd``,
     ``C = T_WI T_Id``: ``d e/d T_Wd = J_r^-1(e)``, ``d e/d T_WI = -J_r^-1(e) Ad(D^-1) Ad(T_dI)``,
     ``d e/d theta = J_r^-1(e) Ad(D^-1) Ad(T_ds) J_theta`` (``J_theta`` the tangent Jacobian of T_ds).
+
+    An image exposed at a known time ``delta`` from the keyframe (:mod:`factors.exposure` with fixed
+    offsets) gives the constants ``body_motion`` ``M`` (4x4, the body's motion over ``delta``) and
+    ``theta_shift`` (the joints' motion, rad): ``C = T_WI M T_Id(theta + theta_shift)``, and the pose
+    Jacobian becomes ``-J_r^-1(e) Ad(D^-1) Ad(T_dI) Ad(M^-1)``.
     """
     T_sI = np.asarray(T_sI, float)
+    M = None if body_motion is None else gtsam.Pose3(np.asarray(body_motion, float))
+    Ad_Minv = None if M is None else M.inverse().AdjointMap()
+    shift = None if theta_shift is None else np.asarray(theta_shift, float)
     noise = gtsam.noiseModel.Diagonal.Sigmas(np.r_[np.full(3, sigma_rotation), np.full(3, sigma_translation)])
 
     def error(this: gtsam.CustomFactor, values: gtsam.Values, H: list[FloatArray] | None) -> FloatArray:
         T_WI = values.atPose3(pose_key)
         T_Wd = values.atPose3(camera_key)
-        T_ds, J_th = cache.get(values.atVector(theta_key))
+        theta = values.atVector(theta_key)
+        T_ds, J_th = cache.get(theta if shift is None else theta + shift)
         T_dI = gtsam.Pose3(T_ds @ T_sI)
-        C = T_WI.compose(T_dI.inverse())
+        C = T_WI.compose(T_dI.inverse()) if M is None else T_WI.compose(M).compose(T_dI.inverse())
         D = C.between(T_Wd)
         e = gtsam.Pose3.Logmap(D)
         if H is not None:
             Jl = gtsam.Pose3.LogmapDerivative(e)
             Ad = Jl @ D.inverse().AdjointMap()
-            H[0] = -Ad @ T_dI.AdjointMap()
+            H[0] = -Ad @ T_dI.AdjointMap() if Ad_Minv is None else -Ad @ T_dI.AdjointMap() @ Ad_Minv
             H[1] = Ad @ gtsam.Pose3(T_ds).AdjointMap() @ J_th
             H[2] = Jl
         return e

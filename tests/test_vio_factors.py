@@ -17,7 +17,7 @@ from factors.vio import (
 )
 
 X, TH = gtsam.symbol("x", 0), gtsam.symbol("t", 0)
-DIMS = {"x": 6, "t": 2, "l": 3}
+DIMS = {"x": 6, "t": 2, "l": 3, "c": 6}
 
 
 def _lm(i: int) -> int:
@@ -47,7 +47,7 @@ def _scene(seed: int, n: int, static: bool = False) -> tuple[gtsam.Values, np.nd
 def _retract(values: gtsam.Values, key: int, delta: np.ndarray) -> gtsam.Values:
     out = gtsam.Values(values)
     sym = chr(gtsam.Symbol(key).chr())
-    if sym == "x":
+    if sym in "xc":
         out.update(key, values.atPose3(key).retract(delta))
     elif sym == "t":
         out.update(key, values.atVector(key) + delta)
@@ -182,3 +182,20 @@ def test_projection_factory_matches_static_factor() -> None:
         a = make(z[i], X, _lm(i))
         b = static_projection_factor(z[i], 2e-3, X, _lm(i), T_sI, huber_k=2.0)
         assert a.error(values) == pytest.approx(b.error(values), rel=1e-12)
+
+
+def test_gimbal_camera_pose_factor_with_a_known_exposure_motion() -> None:
+    """The tie of an image exposed at a known time from its keyframe (constant body motion M and joint
+    shift): Jacobians against central differences, zero at T_Wd = T_WI M T_Id(theta + shift)."""
+    values, _, theta, T_sI, cal = _scene(5, 1)
+    rng = np.random.default_rng(5)
+    M = gtsam.Pose3.Expmap(rng.normal(size=6) * 0.02).matrix()
+    shift = rng.normal(size=2) * 0.01
+    C = gtsam.symbol("c", 0)
+    T_Wd = values.atPose3(X).matrix() @ M @ np.linalg.inv(cal.T_ds(theta + shift) @ T_sI)
+    values.insert(C, gtsam.Pose3(T_Wd))
+    cache = ChainCache(cal.kin, 2)
+    f = gimbal_camera_pose_factor(X, TH, C, cache, T_sI, 1e-3, 1e-3, body_motion=M, theta_shift=shift)
+    assert np.abs(f.unwhitenedError(values)).max() < 1e-10
+    values.update(C, gtsam.Pose3(T_Wd).retract(rng.normal(size=6) * 0.01))
+    _check_factor(f, values)

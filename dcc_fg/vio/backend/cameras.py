@@ -65,12 +65,12 @@ class CameraRig:
             )
         return self.project_locked(z, pose_key(k), landmark_key(lm))
 
-    def project_shifted(self, z: FloatArray, pose_k: int, landmark: int, T_Is: gtsam.Pose3) -> gtsam.NonlinearFactor:
-        """Static-camera projection factor on the body pose ``x(k)`` through a per-keyframe mount ``T_Is``
-        (the camera at its exposure time relative to the keyframe, :mod:`.exposure`)."""
+    def project_shifted(self, z: FloatArray, pose_k: int, landmark: int, T_Ic: gtsam.Pose3) -> gtsam.NonlinearFactor:
+        """Projection factor on the body pose ``x(k)`` through a per-keyframe mount ``T_Ic`` (a camera with a
+        constant mount at its exposure time relative to the keyframe, :mod:`.exposure`)."""
         f = self.project_static
         return gtsam.GenericProjectionFactorCal3_S2(
-            np.asarray(z, float).reshape(2), f.noise, pose_k, landmark, f.K, False, False, T_Is
+            np.asarray(z, float).reshape(2), f.noise, pose_k, landmark, f.K, False, False, T_Ic
         )
 
     def add_gimbal_camera_pose(

@@ -17,7 +17,7 @@ window it is re-anchored at its estimate with its marginal sigma. With
 the auxiliary static pose then costs more than the offsets still gain). An image is *timed* (an
 auxiliary pose) when its offset is estimated, or (gimbal) not zero or its stamp differs from the
 keyframe's; a static image at a known non-zero offset projects from ``x(k)`` through a fixed mount per
-keyframe (:meth:`ExposureModel.add_static_shift`); untimed images keep the direct factors (static: on
+keyframe (:meth:`ExposureModel.add_image`); untimed images keep the direct factors (static: on
 ``x(k)``; gimbal: :func:`factors.vio.gimbal_camera_pose_factor`), so a synchronized run without
 offsets is exactly the same graph as before.
 
@@ -48,12 +48,16 @@ from dcc_fg.vio.backend.keys import (
 )
 from dcc_fg.vio.backend.options import NS, FloatArray, VioOptions
 from factors.exposure import CameraMount, ExposureKeys, exposure_pose, exposure_pose_factor, exposure_rate
+from factors.vio import gimbal_camera_pose_factor
 
 STATIC = 0
 GIMBAL = 1
 log = logging.getLogger(__name__)
-#: Keyframes between two convergence checks of :meth:`ExposureModel.maybe_freeze`.
-FREEZE_CHECK_EVERY = 10
+#: Seconds of data between two convergence checks of :meth:`ExposureModel.maybe_freeze` (each needs the
+#: offsets' marginal covariance: up to 0.1 s of ISAM2 work on a 60 s flight).
+FREEZE_CHECK_PERIOD_S = 2.0
+#: Stamp jitter below this (s) is the nanosecond rounding of regular stamps: treated as none.
+MIN_JITTER_S = 1e-6
 #: Smallest offset sigma (s) carried across a restart of the window.
 MIN_RESTART_SIGMA_S = 1e-5
 
@@ -93,12 +97,13 @@ class ExposureModel:
         self.offsets = np.asarray(options.offsets, float)
         self.sigma = np.full(2, options.time_offset_prior_sigma)
         self.timed: dict[int, dict[int, ImageTiming]] = {}
-        self.static_shift: dict[int, gtsam.Pose3] = {}
+        self.shift: dict[tuple[int, int], gtsam.Pose3] = {}
         self.started_ns: int | None = None
         self.frozen_at_ns: int | None = None
         self.frozen_sigma: FloatArray | None = None
-        self.checks = 0
-        self.jitter = np.zeros(2) if options.stamp_jitter is None else np.asarray(options.stamp_jitter, float)
+        self.last_check_ns: int | None = None
+        jitter = np.zeros(2) if options.stamp_jitter is None else np.asarray(options.stamp_jitter, float)
+        self.jitter = np.where(jitter < MIN_JITTER_S, 0.0, jitter)
 
     # ------------------------------------------------------------------ offsets variable
     def anchor(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, stamps: dict[int, int], t: int) -> None:
@@ -142,15 +147,16 @@ class ExposureModel:
 
     def maybe_freeze(self, smoother: object, t_ns: int) -> None:
         """Hold the offsets at their estimate once every used camera's 1-sigma is below
-        ``time_offset_freeze_sigma`` (checked every :data:`FREEZE_CHECK_EVERY` keyframes, at least one
+        ``time_offset_freeze_sigma`` (checked every :data:`FREEZE_CHECK_PERIOD_S` of data, at least one
         window ``lag`` after the start): from then on the images need no auxiliary static pose and the
         smoother runs at the cost of a run with known offsets."""
         limit = self.opt.time_offset_freeze_sigma
         if not self.active or limit is None or self.started_ns is None:
             return
-        self.checks += 1
-        if self.checks % FREEZE_CHECK_EVERY or t_ns - self.started_ns < self.opt.lag * NS:
+        since = t_ns - (self.started_ns if self.last_check_ns is None else self.last_check_ns)
+        if since < max(FREEZE_CHECK_PERIOD_S, self.opt.lag) * NS:
             return
+        self.last_check_ns = t_ns
         sigma = self.marginal_sigma(smoother)
         if sigma is None or not all(sigma[c] < limit for c in self.mounts):
             return
@@ -166,29 +172,11 @@ class ExposureModel:
 
     # ------------------------------------------------------------------ images
     def static_timed(self) -> bool:
-        """The static image needs an auxiliary pose (offset estimated)."""
-        return self.active
-
-    def static_shifted(self) -> bool:
-        """The static image is at a known, non-zero offset from its keyframe: a fixed mount per keyframe."""
-        return not self.active and self.offsets[STATIC] != 0.0
+        """The static image is not at its keyframe's time (offset estimated or not zero)."""
+        return self.active or self.offsets[STATIC] != 0.0
 
     def gimbal_timed(self, stamp_gap_s: float) -> bool:
         return self.active or self.offsets[GIMBAL] != 0.0 or stamp_gap_s != 0.0
-
-    def add_static_shift(
-        self, k: int, t_ns: int, pose: gtsam.Pose3, velocity: FloatArray, gyro_bias: FloatArray
-    ) -> gtsam.Pose3:
-        """Known static offset: the body -> static camera transform at the image's exposure,
-        ``T_I,s = Exp(t_s xi) T_Is`` with the keyframe's predicted twist (a velocity error dv moves it by
-        ``t_s dv``: 0.05 mm for 5 ms and 1 cm/s), for gtsam's C++ projection factors on ``x(k)``."""
-        delta = float(self.offsets[STATIC])
-        omega = mean_gyro(self.imu, t_ns, t_ns + int(round(delta * NS))) - np.asarray(gyro_bias, float)
-        mount, _, _ = self.mounts[STATIC].pose(None)
-        shift = gtsam.Pose3(exposure_pose(np.eye(4), pose.rotation().matrix().T @ np.asarray(velocity, float), omega,
-                                          delta, mount.matrix()))  # fmt: skip
-        self.static_shift[k] = shift
-        return shift
 
     def is_timed(self, k: int, cam: int) -> bool:
         return cam in self.timed.get(k, {})
@@ -237,9 +225,13 @@ class ExposureModel:
         values: gtsam.Values,
         stamps: dict[int, int],
     ) -> None:
-        """Auxiliary pose of camera ``cam``'s image of keyframe k (time ``t_ns``), its start value and
-        its exposure factor. ``previous`` = (time ns, joint angles) of the previous keyframe of the
-        segment (gimbal: the joint rate), or None."""
+        """Camera ``cam``'s image of keyframe k (time ``t_ns``) at its exposure time. Offsets estimated:
+        an auxiliary pose, its start value and :func:`~factors.exposure.exposure_pose_factor`. Offsets
+        known: a constant mount ``Exp(delta xi) T_Ic`` per keyframe (``xi`` from the predicted
+        velocity; a velocity error ``dv`` moves it by ``delta dv``, 0.05 mm for 5 ms and 1 cm/s) for the
+        C++ projection factors on ``x(k)``, or for a gimbal chain the auxiliary pose tied by
+        :func:`~factors.vio.gimbal_camera_pose_factor` with that body motion. ``previous`` = (time ns,
+        joint angles) of the previous keyframe of the segment (gimbal: the joint rate), or None."""
         delta0 = stamp_gap_s + float(self.offsets[cam])
         omega = mean_gyro(self.imu, t_ns, t_ns + int(round(delta0 * NS))) - np.asarray(gyro_bias, float)
         mount = self.mounts[cam]
@@ -247,6 +239,12 @@ class ExposureModel:
         rate = np.zeros(L)
         if mount.on_gimbal and previous is not None and theta is not None and t_ns > previous[0]:
             rate = (np.asarray(theta, float) - np.asarray(previous[1], float)) / ((t_ns - previous[0]) / NS)
+        v_W = np.asarray(velocity, float)
+        if not self.active and not mount.on_gimbal:
+            X, _, _ = mount.pose(None)
+            self.shift[(k, cam)] = gtsam.Pose3(exposure_pose(np.eye(4), pose.rotation().matrix().T @ v_W, omega,
+                                                             delta0, X.matrix()))  # fmt: skip
+            return
         self.timed.setdefault(k, {})[cam] = ImageTiming(stamp_gap_s, omega, rate)
         key = static_camera_key(k) if cam == STATIC else camera_key(k)
         jitter = None
@@ -255,10 +253,17 @@ class ExposureModel:
             T_Ic, G = mount(th)
             u = exposure_rate(pose.matrix(), np.asarray(velocity, float), omega, T_Ic, G, rate)
             jitter = self.jitter[cam] * u
-        T_Wc = self.T_Wc(k, cam, pose.matrix(), np.asarray(velocity, float), theta)
+        T_Wc = self.T_Wc(k, cam, pose.matrix(), v_W, theta)
         assert T_Wc is not None
         values.insert(key, gtsam.Pose3(T_Wc))
         stamps[key] = t_ns
+        sig = self.opt.camera_pose_sigma
+        if not self.active:  # a gimbal chain at a known offset: the tie with a constant body motion
+            assert mount.cache is not None and mount.T_sI is not None
+            M = exposure_pose(np.eye(4), pose.rotation().matrix().T @ v_W, omega, delta0, np.eye(4))
+            graph.add(gimbal_camera_pose_factor(pose_key(k), theta_key(k), key, mount.cache, mount.T_sI, sig, sig,
+                                                M, delta0 * rate))  # fmt: skip
+            return
         keys = ExposureKeys(
             pose_key(k),
             velocity_key(k),
@@ -267,7 +272,6 @@ class ExposureModel:
             cam,
             theta_key(k) if mount.on_gimbal else None,
         )
-        sig = self.opt.camera_pose_sigma
         graph.add(
             exposure_pose_factor(keys, mount, stamp_gap_s, omega, float(self.offsets[cam]), rate, sig, sig, jitter)
         )
@@ -276,8 +280,8 @@ class ExposureModel:
         """Drop the timing of keyframes before ``before_k`` (left the window, or lost in a failed update)."""
         for kk in [kk for kk in self.timed if kk < before_k]:
             del self.timed[kk]
-        for kk in [kk for kk in self.static_shift if kk < before_k]:
-            del self.static_shift[kk]
+        for kc in [kc for kc in self.shift if kc[0] < before_k]:
+            del self.shift[kc]
 
     def summary(self, smoother: object, gimbal: bool) -> dict[str, object]:
         """``time_offsets`` block of the result: estimates and 1-sigma (s), the convention."""

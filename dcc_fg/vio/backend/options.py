@@ -46,7 +46,8 @@ class VioOptions:
     ``estimate_time_offsets`` makes them a state of the smoother with a prior of
     ``time_offset_prior_sigma`` (s) around the start values (False: held at the start values).
     ``time_offset_freeze_sigma`` (s): once every estimated offset's 1-sigma is below it, the offsets
-    are held at their estimate (None: estimated to the end). ``stamp_jitter`` = 1-sigma (s) of each
+    are held at their estimate (None: estimated to the end); the default 0.25 ms moves a camera turning at 1 rad/s
+    by 0.25 mrad, about 0.1 px at 460 px focal length, below the feature noise. ``stamp_jitter`` = 1-sigma (s) of each
     camera's header stamps around its exposure times (None: measured from the stamps by
     :func:`~dcc_fg.vio.backend.runner.run_vio` and ``dcc-fg vio``).
     """
@@ -96,7 +97,7 @@ class VioOptions:
     estimate_time_offsets: bool = True
     time_offset_prior_sigma: float = 0.01
     stamp_jitter: tuple[float, float] | None = None
-    time_offset_freeze_sigma: float | None = 1e-4
+    time_offset_freeze_sigma: float | None = 2.5e-4
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:

@@ -158,7 +158,7 @@ class VioSmoother:
             theta = self._theta_at(k)
         est = self.estimates[k]
         T = self.exposure.T_Wc(k, cam, est.T_WI, est.v_W, theta)
-        shift = self.exposure.static_shift.get(k) if cam == STATIC else None
+        shift = self.exposure.shift.get((k, cam))
         if T is None and shift is not None:
             T = est.T_WI @ shift.matrix()
         return T if T is not None else self.rig.T_Wc(est.T_WI, cam, theta)
@@ -179,8 +179,6 @@ class VioSmoother:
         gyro_bias = self.bias.gyroscope()
         if self.exposure.static_timed():
             self.exposure.add_image(k, STATIC, t, 0.0, pose, velocity, gyro_bias, None, None, graph, values, stamps)
-        elif self.exposure.static_shifted():
-            self.exposure.add_static_shift(k, t, pose, velocity, gyro_bias)
         if self.opt.mode == "mono":
             return
         gap = frame.dynamic_gap_s
@@ -631,7 +629,7 @@ class VioSmoother:
         if self.exposure.is_timed(k, cam):
             key = static_camera_key(k) if cam == STATIC else camera_key(k)
             return self.rig.project_camera(z, key, landmark_key(lm))
-        shift = self.exposure.static_shift.get(k) if cam == STATIC else None
+        shift = self.exposure.shift.get((k, cam))
         if shift is not None:
             return self.rig.project_shifted(z, pose_key(k), landmark_key(lm), shift)
         return self.rig.observation_factor(k, cam, lm, z)
