@@ -12,7 +12,13 @@ offsets' NEES (mean of ``error^2 / sigma^2`` over all estimates; 1 when the repo
 honest) with its 95 % interval (chi-square with as many degrees of freedom as estimates). Exits 1 if
 fewer than 95 % of the members succeed or the NEES lies outside the interval.
 
+``--cost N`` measures instead what estimating the offsets costs when they are truly 0: N flights (IMU
+noise, landmarks and feature noise from the seed), synchronized, each run with the offsets estimated
+and held at 0; the ratio of the normalized translation RMSE (``--freeze S``: the estimate is held
+once its 1-sigma is below S seconds, ``VioOptions.time_offset_freeze_sigma``).
+
 Usage: ``python benchmarks/bench_time_offsets.py [--n 20] [--seed0 0] [--duration 14] [--workers 2] [--json F]``
+``[--cost N [--freeze S]]``
 """
 
 from __future__ import annotations
@@ -47,6 +53,38 @@ def member(job: tuple[str, CameraTiming, float]) -> dict[str, Any]:
     r["offsets_ok"] = max(errors) <= MAX_OFFSET_ERROR_S
     r["joints_ok"] = max(r["joint_rmse_rad"]) <= MAX_JOINT_RMSE_RAD
     return r
+
+
+def cost_member(job: tuple[int, bool, float, float | None]) -> dict[str, Any]:
+    """One synchronized zero-offset flight (seed), offsets estimated or held (in a worker process)."""
+    seed, estimate, duration, freeze = job
+    r = run_timing(make_flight(duration, seed=seed), CameraTiming(), estimate, seed=seed + 1,
+                   options={"time_offset_freeze_sigma": freeze})  # fmt: skip
+    return {"seed": seed, "estimate": estimate, **r}
+
+
+def accuracy_cost(a: argparse.Namespace) -> int:
+    """``--cost``: translation RMSE with the offsets estimated / held at their true value 0."""
+    jobs = [(s, e, a.duration, a.freeze) for s in range(a.seed0, a.seed0 + a.cost) for e in (True, False)]
+    with ProcessPoolExecutor(max_workers=a.workers) as pool:
+        out = list(pool.map(cost_member, jobs))
+    est = {r["seed"]: r for r in out if r["estimate"]}
+    held = {r["seed"]: r for r in out if not r["estimate"]}
+    key = "normalized_translation_rmse_percent"
+    ratios = []
+    for s in est:
+        ratios.append(est[s][key] / held[s][key])
+        err = f"{1e3 * est[s]['static_error_s']:+.3f} {1e3 * est[s]['dynamic_error_s']:+.3f} ms"
+        print(f"seed {s}: RMSE {est[s][key]:.4f} % estimated, {held[s][key]:.4f} % held (ratio {ratios[-1]:.2f}); "
+              f"offset errors {err}")  # fmt: skip
+    pooled = float(
+        np.sqrt(np.mean([r[key] ** 2 for r in est.values()]) / np.mean([r[key] ** 2 for r in held.values()]))
+    )
+    print(f"\n{len(est)} flights, freeze sigma {a.freeze}: RMSE estimated / held: median {np.median(ratios):.2f}, "
+          f"pooled {pooled:.2f}")  # fmt: skip
+    if a.json:
+        Path(a.json).write_text(json.dumps({"runs": out, "ratios": ratios, "pooled": pooled}, indent=1, default=float))
+    return 0
 
 
 def line(r: dict[str, Any], reference: float) -> str:
@@ -90,7 +128,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--duration", type=float, default=14.0, help="flight duration, s (default 14)")
     p.add_argument("--workers", type=int, default=2)
     p.add_argument("--json", help="write the records and the summary to this file")
+    p.add_argument("--cost", type=int, default=0, help="instead: the accuracy cost of estimating on N flights")
+    p.add_argument("--freeze", type=float, default=None, help="with --cost: time_offset_freeze_sigma, s")
     a = p.parse_args(argv)
+    if a.cost:
+        return accuracy_cost(a)
     jobs = [("sync", CameraTiming(), a.duration), ("issue", ISSUE_TIMING, a.duration)]
     jobs += [(f"family {s}", timing_family(s), a.duration) for s in range(a.seed0, a.seed0 + a.n)]
     t0 = time.perf_counter()

@@ -58,3 +58,12 @@ def test_family_members(flight: Flight, synchronized: dict[str, Any], seed: int)
     _check_offsets(r)
     assert max(r["joint_rmse_rad"]) <= 1e-2, r["joint_rmse_rad"]
     assert r["normalized_translation_rmse_percent"] <= 2.0 * synchronized["normalized_translation_rmse_percent"]
+
+
+def test_offsets_held_once_determined(flight: Flight) -> None:
+    """``time_offset_freeze_sigma``: the offsets are held once their 1-sigma is below it (every 2 s of data
+    from one window on), still within 1 ms and their reported 1-sigma (the one they had then)."""
+    r = run_timing(flight, ISSUE_TIMING, options={"time_offset_freeze_sigma": 2.5e-4})
+    assert r["held_from_ns"] is not None
+    _check_offsets(r)
+    assert max(r["static_sigma_s"], r["dynamic_sigma_s"]) < 2.5e-4

@@ -68,9 +68,15 @@ def timing_family(seed: int) -> CameraTiming:
 
 
 def run_timing(
-    flight: Flight, timing: CameraTiming, estimate: bool = True, pixel_sigma: float = 0.5, seed: int = 1
+    flight: Flight,
+    timing: CameraTiming,
+    estimate: bool = True,
+    pixel_sigma: float = 0.5,
+    seed: int = 1,
+    options: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
-    """Simulate the tracks of ``timing``, run dcc (offsets estimated from 0, or held at 0) and score it."""
+    """Simulate the tracks of ``timing``, run dcc (offsets estimated from 0, or held at 0) and score it;
+    ``options`` overrides :class:`~dcc_fg.vio.backend.VioOptions` fields."""
     cal = flight_calibration()
     frames = simulate_timed_tracks(flight.truth, flight.landmarks_W, cal, flight.imu.T_sI, timing, pixel_sigma, seed)
     tr = flight.truth
@@ -79,8 +85,8 @@ def run_timing(
     i0 = min(int(np.searchsorted(tr.t_ns, t0)), tr.t_ns.size - 1)
     initial = InitialState(t0, T0[0], tr.v_W[i0], tr.acc_bias[i0], tr.gyro_bias[i0], theta0[0] + 0.03)
     focal = float(cal.static_camera.intrinsics[0]) if cal.static_camera is not None else 460.0
-    options = VioOptions(mode="dcc", sigma=pixel_sigma / focal, estimate_time_offsets=estimate)
-    res = run_vio(frames, tr.imu, flight.imu, cal, options, initial)
+    opts = VioOptions(mode="dcc", sigma=pixel_sigma / focal, estimate_time_offsets=estimate, **(options or {}))
+    res = run_vio(frames, tr.imu, flight.imu, cal, opts, initial)
     ev = evaluate_trajectory(res.timestamps_ns, res.T_WI, flight.gt, "se3")
     to = res.stats["time_offsets"]
     truth_offsets = timing.time_offsets
@@ -94,6 +100,7 @@ def run_timing(
         "segments": res.stats["segment_count"],
         "frames_with_gimbal": sum(f.dynamic_timestamp_ns is not None for f in frames),
         "frames": len(frames),
+        "held_from_ns": to["held_from_ns"],
     }
     for name, c in (("static", 0), ("dynamic", 1)):
         est, sigma = to[f"{name}_s"], to[f"{name}_sigma_s"]

@@ -46,8 +46,10 @@ class VioOptions:
     ``estimate_time_offsets`` makes them a state of the smoother with a prior of
     ``time_offset_prior_sigma`` (s) around the start values (False: held at the start values).
     ``time_offset_freeze_sigma`` (s): once every estimated offset's 1-sigma is below it, the offsets
-    are held at their estimate (None: estimated to the end); the default 0.25 ms moves a camera turning at 1 rad/s
-    by 0.25 mrad, about 0.1 px at 460 px focal length, below the feature noise. ``stamp_jitter`` = 1-sigma (s) of each
+    are held at their estimate, which saves the auxiliary static pose (None, the default: estimated to
+    the end; holding them at 0.25 ms cost 20 % translation accuracy over 12 simulated flights, the
+    offsets' remaining error acting as a bias, ``benchmarks/bench_time_offsets.py --freeze``).
+    ``stamp_jitter`` = 1-sigma (s) of each
     camera's header stamps around its exposure times (None: measured from the stamps by
     :func:`~dcc_fg.vio.backend.runner.run_vio` and ``dcc-fg vio``).
     """
@@ -97,7 +99,7 @@ class VioOptions:
     estimate_time_offsets: bool = True
     time_offset_prior_sigma: float = 0.01
     stamp_jitter: tuple[float, float] | None = None
-    time_offset_freeze_sigma: float | None = 2.5e-4
+    time_offset_freeze_sigma: float | None = None
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
