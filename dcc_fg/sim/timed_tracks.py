@@ -21,7 +21,7 @@ from dcc_fg.data.vio import TrackFrame
 from dcc_fg.io.pairing import pair_timestamps
 from dcc_fg.model import GimbalCalibration
 from dcc_fg.sim.timing import CameraTiming
-from dcc_fg.sim.trajectory import FlightTruth, FloatArray, truth_at, visible_points
+from dcc_fg.sim.trajectory import FlightTruth, FloatArray, TrackIds, noisy_normalized, truth_at, visible_points
 from factors import chain
 
 NS = 1_000_000_000
@@ -52,10 +52,7 @@ def simulate_timed_tracks(
     T_WI_s, _ = truth_at(truth, static.exposure_ns + t0)
     T_WI_d, theta_d = truth_at(truth, gimbal.exposure_ns + t0)
     P_h = np.hstack([landmarks_W, np.ones((landmarks_W.shape[0], 1))])
-    track_id = np.full(landmarks_W.shape[0], -1, dtype=np.int64)
-    next_id = 0
-    scale_s = pixel_sigma / np.asarray(cam_s.intrinsics[:2], float)
-    scale_d = pixel_sigma / np.asarray(cam_d.intrinsics[:2], float)
+    tracks = TrackIds(landmarks_W.shape[0])
     frames = []
     for i in np.argsort(static.stamp_ns, kind="stable"):
         p_s = P_h @ (T_sI @ chain.inv_se3(T_WI_s[i]))[:3].T
@@ -66,13 +63,9 @@ def simulate_timed_tracks(
         if j is not None:
             p_d = P_h @ (calibration.T_ds(theta_d[j]) @ T_sI @ chain.inv_se3(T_WI_d[j]))[:3].T
             vis_d, _ = visible_points(cam_d, p_d, max_range, margin_px)
-        seen = vis_s | vis_d
-        track_id[~seen] = -1
-        new = seen & (track_id < 0)
-        track_id[new] = next_id + np.arange(int(new.sum()))
-        next_id += int(new.sum())
-        xy_s = p_s[vis_s, :2] / p_s[vis_s, 2:3] + rng.normal(size=(int(vis_s.sum()), 2)) * scale_s
-        xy_d = p_d[vis_d, :2] / p_d[vis_d, 2:3] + rng.normal(size=(int(vis_d.sum()), 2)) * scale_d
+        track_id = tracks.update(vis_s | vis_d)
+        xy_s = noisy_normalized(p_s, vis_s, cam_s, pixel_sigma, rng)
+        xy_d = noisy_normalized(p_d, vis_d, cam_d, pixel_sigma, rng)
         frames.append(
             TrackFrame(
                 t0 + int(static.stamp_ns[i]),

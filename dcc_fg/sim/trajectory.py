@@ -439,6 +439,33 @@ def visible_points(
     return ok, uv
 
 
+class TrackIds:
+    """Track id of every landmark (-1 when unseen): kept while either camera sees the landmark in
+    consecutive frames, a new id when it is seen again after a frame without it."""
+
+    def __init__(self, n_landmarks: int) -> None:
+        self.ids = np.full(n_landmarks, -1, dtype=np.int64)
+        self.next_id = 0
+
+    def update(self, seen: NDArray[np.bool_]) -> IntArray:
+        """Ids after a frame in which the landmarks ``seen`` (N,) were seen."""
+        self.ids[~seen] = -1
+        new = seen & (self.ids < 0)
+        self.ids[new] = self.next_id + np.arange(int(new.sum()))
+        self.next_id += int(new.sum())
+        return self.ids
+
+
+def noisy_normalized(
+    p_c: FloatArray, vis: NDArray[np.bool_], camera: CameraModel, pixel_sigma: float, rng: np.random.Generator
+) -> FloatArray:
+    """Normalized coordinates (n, 2) of the visible points ``p_c[vis]`` (camera frame) with N(0,
+    ``pixel_sigma``) pixel noise converted by the camera's focal lengths."""
+    xy = p_c[vis, :2] / p_c[vis, 2:3]
+    fx, fy = camera.intrinsics[0], camera.intrinsics[1]
+    return xy + rng.normal(size=xy.shape) * pixel_sigma / np.array([fx, fy])
+
+
 def simulate_tracks(
     truth: FlightTruth,
     landmarks_W: FloatArray,
@@ -465,8 +492,7 @@ def simulate_tracks(
     idx = truth.index_of(truth.frame_t_ns)
     thetas = truth.theta[idx] if theta is None else np.asarray(theta, float).reshape(idx.size, -1)
     P_h = np.hstack([landmarks_W, np.ones((landmarks_W.shape[0], 1))])
-    track_id = np.full(landmarks_W.shape[0], -1, dtype=np.int64)
-    next_id = 0
+    tracks = TrackIds(landmarks_W.shape[0])
     frames = []
     for f, i in enumerate(idx):
         T_sW = T_sI @ chain.inv_se3(truth.T_WI[i])
@@ -478,21 +504,10 @@ def simulate_tracks(
             T_dW = calibration.T_ds(thetas[f]) @ T_sW
             p_d = P_h @ T_dW[:3].T
             vis_d, _ = visible_points(cam_d, p_d, max_range, margin_px)
-        seen = vis_s | vis_d
-        track_id[~seen] = -1
-        new = seen & (track_id < 0)
-        track_id[new] = next_id + np.arange(int(new.sum()))
-        next_id += int(new.sum())
-
-        def obs(vis: NDArray[np.bool_], p: FloatArray, cam: CameraModel) -> tuple[IntArray, FloatArray]:
-            xy = p[vis, :2] / p[vis, 2:3]
-            fx, fy = cam.intrinsics[0], cam.intrinsics[1]
-            xy = xy + rng.normal(size=xy.shape) * pixel_sigma / np.array([fx, fy])
-            return track_id[vis].copy(), xy
-
-        s_ids, s_xy = obs(vis_s, p_s, cam_s)
+        track_id = tracks.update(vis_s | vis_d)
+        s_ids, s_xy = track_id[vis_s].copy(), noisy_normalized(p_s, vis_s, cam_s, pixel_sigma, rng)
         if dynamic:
-            d_ids, d_xy = obs(vis_d, p_d, cam_d)
+            d_ids, d_xy = track_id[vis_d].copy(), noisy_normalized(p_d, vis_d, cam_d, pixel_sigma, rng)
         else:
             d_ids, d_xy = np.zeros(0, dtype=np.int64), np.zeros((0, 2))
         frames.append(TrackFrame(int(truth.frame_t_ns[f]), s_ids, s_xy, d_ids, d_xy))

@@ -443,14 +443,13 @@ class Frontend:
         self.stats.cpu_ms.append(1e3 * (time.process_time() - c0))
         if self.dynamic is not None and not gimbal:
             self.stats.frames_without_gimbal += 1
-            s = self.static
-            return TrackFrame(int(timestamp_ns), s.ids.copy(), s.xy.copy())
-        return self.frame(timestamp_ns)
+        return self.frame(timestamp_ns, gimbal)
 
-    def frame(self, timestamp_ns: int) -> TrackFrame:
-        """The current observations as a TrackFrame."""
+    def frame(self, timestamp_ns: int, with_gimbal: bool = True) -> TrackFrame:
+        """The current observations as a TrackFrame (without the gimbal camera's when ``with_gimbal``
+        is False: a frame without a gimbal image)."""
         s = self.static
-        if self.dynamic is None:
+        if self.dynamic is None or not with_gimbal:
             return TrackFrame(int(timestamp_ns), s.ids.copy(), s.xy.copy())
         d = self.dynamic
         return TrackFrame(int(timestamp_ns), s.ids.copy(), s.xy.copy(), d.ids.copy(), d.xy.copy())

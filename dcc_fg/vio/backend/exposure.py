@@ -181,8 +181,16 @@ class ExposureModel:
     def is_timed(self, k: int, cam: int) -> bool:
         return cam in self.timed.get(k, {})
 
+    def _body_rate(self, t_ns: int, delta_s: float, gyro_bias: FloatArray) -> FloatArray:
+        """Mean bias-corrected gyro rate (rad/s in I) from a keyframe at ``t_ns`` to ``delta_s`` later."""
+        return mean_gyro(self.imu, t_ns, t_ns + int(round(delta_s * NS))) - np.asarray(gyro_bias, float)
+
     def T_Wc(self, k: int, cam: int, T_WI: FloatArray, v_W: FloatArray, theta: FloatArray | None) -> FloatArray | None:
-        """Exposure-time pose (camera -> W) of camera ``cam`` at keyframe k, None if the image is not timed."""
+        """Exposure-time pose (camera -> W) of camera ``cam`` at keyframe k (auxiliary pose or constant
+        per-keyframe mount), None if the image is at its keyframe's time."""
+        shift = self.shift.get((k, cam))
+        if shift is not None:
+            return np.asarray(T_WI, float) @ shift.matrix()
         timing = self.timed.get(k, {}).get(cam)
         if timing is None:
             return None
@@ -207,8 +215,7 @@ class ExposureModel:
         """Body pose (I -> W) at the exposure of camera ``cam``'s image ``stamp_gap_s`` after a keyframe at
         ``t_ns`` with pose ``T_WI`` and velocity ``v_W`` (current offsets, gyro minus ``bias``)."""
         delta = stamp_gap_s + float(self.offsets[cam])
-        omega = mean_gyro(self.imu, t_ns, t_ns + int(round(delta * NS))) - np.asarray(bias.gyroscope(), float)
-        return exposure_pose(T_WI, v_W, omega, delta, np.eye(4))
+        return exposure_pose(T_WI, v_W, self._body_rate(t_ns, delta, bias.gyroscope()), delta, np.eye(4))
 
     def add_image(
         self,
@@ -233,17 +240,22 @@ class ExposureModel:
         :func:`~factors.vio.gimbal_camera_pose_factor` with that body motion. ``previous`` = (time ns,
         joint angles) of the previous keyframe of the segment (gimbal: the joint rate), or None."""
         delta0 = stamp_gap_s + float(self.offsets[cam])
-        omega = mean_gyro(self.imu, t_ns, t_ns + int(round(delta0 * NS))) - np.asarray(gyro_bias, float)
+        omega = self._body_rate(t_ns, delta0, gyro_bias)
         mount = self.mounts[cam]
         L = mount.n_joints
         rate = np.zeros(L)
         if mount.on_gimbal and previous is not None and theta is not None and t_ns > previous[0]:
             rate = (np.asarray(theta, float) - np.asarray(previous[1], float)) / ((t_ns - previous[0]) / NS)
         v_W = np.asarray(velocity, float)
-        if not self.active and not mount.on_gimbal:
+        # offsets known: the body's motion from the keyframe to the exposure, from the predicted velocity
+        M = (
+            None
+            if self.active
+            else exposure_pose(np.eye(4), pose.rotation().matrix().T @ v_W, omega, delta0, np.eye(4))
+        )
+        if M is not None and not mount.on_gimbal:
             X, _, _ = mount.pose(None)
-            self.shift[(k, cam)] = gtsam.Pose3(exposure_pose(np.eye(4), pose.rotation().matrix().T @ v_W, omega,
-                                                             delta0, X.matrix()))  # fmt: skip
+            self.shift[(k, cam)] = gtsam.Pose3(M @ X.matrix())
             return
         self.timed.setdefault(k, {})[cam] = ImageTiming(stamp_gap_s, omega, rate)
         key = static_camera_key(k) if cam == STATIC else camera_key(k)
@@ -251,16 +263,15 @@ class ExposureModel:
         if self.jitter[cam] > 0:
             th = None if theta is None or not mount.on_gimbal else np.asarray(theta, float) + delta0 * rate
             T_Ic, G = mount(th)
-            u = exposure_rate(pose.matrix(), np.asarray(velocity, float), omega, T_Ic, G, rate)
+            u = exposure_rate(pose.matrix(), v_W, omega, T_Ic, G, rate)
             jitter = self.jitter[cam] * u
         T_Wc = self.T_Wc(k, cam, pose.matrix(), v_W, theta)
         assert T_Wc is not None
         values.insert(key, gtsam.Pose3(T_Wc))
         stamps[key] = t_ns
         sig = self.opt.camera_pose_sigma
-        if not self.active:  # a gimbal chain at a known offset: the tie with a constant body motion
+        if M is not None:  # a gimbal chain at a known offset: the tie with a constant body motion
             assert mount.cache is not None and mount.T_sI is not None
-            M = exposure_pose(np.eye(4), pose.rotation().matrix().T @ v_W, omega, delta0, np.eye(4))
             graph.add(gimbal_camera_pose_factor(pose_key(k), theta_key(k), key, mount.cache, mount.T_sI, sig, sig,
                                                 M, delta0 * rate))  # fmt: skip
             return
@@ -268,7 +279,7 @@ class ExposureModel:
             pose_key(k),
             velocity_key(k),
             key,
-            offsets_key if self.active else None,
+            offsets_key,
             cam,
             theta_key(k) if mount.on_gimbal else None,
         )

@@ -158,9 +158,6 @@ class VioSmoother:
             theta = self._theta_at(k)
         est = self.estimates[k]
         T = self.exposure.T_Wc(k, cam, est.T_WI, est.v_W, theta)
-        shift = self.exposure.shift.get((k, cam))
-        if T is None and shift is not None:
-            T = est.T_WI @ shift.matrix()
         return T if T is not None else self.rig.T_Wc(est.T_WI, cam, theta)
 
     def _add_camera_poses(
