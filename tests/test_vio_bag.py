@@ -102,6 +102,14 @@ def test_unsynchronized_gimbal_stream_is_paired_by_exposure_time(tmp_path: Path,
     assert len(with_gimbal) == 14 and np.abs(gaps).max() <= 17 * MS  # the nearest 30 Hz image (to 0.65 s)
     assert all(f.dynamic is None for f in frames[14:])  # the stream stopped
     assert "static frames without a partner are used without the gimbal camera" in caplog.text
+    # every gimbal image up to the last partner reaches the front end once, in stamp order: as a frame's
+    # partner or as an image between two frames (tracked through)
+    seen = [
+        t for f in frames for t in (*f.dynamic_between_ns, *([f.dynamic_timestamp_ns] if f.dynamic is not None else []))
+    ]
+    assert seen == sorted(seen) and seen == [int(t) for t in gimbal_t if t <= with_gimbal[-1].dynamic_timestamp_ns]
+    assert vb.gimbal_images_between == len(seen) - 14 > 0
+    assert all(len(f.dynamic_between) == len(f.dynamic_between_ns) for f in frames)
     # pairing by exposure time: a 40 ms offset of the gimbal stamps (t_imu = stamp + 0.040) moves the partners
     shifted = VioBag(path, "/imu0", "/cam0/image_raw", "/cam1/image_raw", time_offsets_ns=(0, 40 * MS))
     pairs = [(f.timestamp_ns, f.dynamic_timestamp_ns) for f in shifted.frames() if f.dynamic is not None]

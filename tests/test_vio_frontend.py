@@ -230,6 +230,50 @@ def test_missing_gimbal_image_and_bad_images(flight: Flight) -> None:
         Frontend(cal.static_camera).process(t, a[::2, ::2])
 
 
+def test_gimbal_tracks_step_through_images_between_frames(flight: Flight) -> None:
+    """A gimbal camera faster than the static one: frames take every third rendered image pair and the
+    gimbal tracks step through the two gimbal images in between (no static partner). Stepped tracks
+    keep their previous-frame positions, history and ages from the last frame (what the gimbal RANSAC
+    and the matching use), and follow the true geometry as well as tracks processed frame by frame
+    (renderer ray-cast at the track's first frame, projected into the current one)."""
+    cal = flight.cal
+    fe = Frontend(cal.static_camera, cal.dynamic_camera, T_ds=cal.T_ds(flight.theta[0]))
+    anchor: dict[int, np.ndarray] = {}
+    errors = []
+    for k in range(0, 19, 3):
+        if k:
+            before = fe.dynamic.xy.copy(), fe.dynamic.ids.copy(), fe.dynamic.ages.copy()
+            for kk in (k - 2, k - 1):
+                fe.track_gimbal(flight.frames[kk][2])
+            ids = fe.dynamic.ids
+            kept = np.isin(before[1], ids)
+            assert kept.sum() > 0.8 * before[1].size  # the steps lose few tracks
+            i_prev = np.searchsorted(before[1], ids) if np.all(np.diff(before[1]) > 0) else None
+            i_prev = np.array([int(np.flatnonzero(before[1] == q)[0]) for q in ids]) if i_prev is None else i_prev
+            assert np.array_equal(fe.dynamic.ages, before[2][i_prev])  # a step is not a frame
+        t, a, b = flight.frames[k]
+        fr = fe.process(t, a, b, T_ds=cal.T_ds(flight.theta[k]))
+        if k:  # previous-frame positions are those of frame k - 3, not of the image just stepped through
+            prev = dict(zip(before[1].tolist(), before[0], strict=True))
+            carried = [i for i, q in enumerate(fe.dynamic.ids) if int(q) in prev]
+            assert carried and np.allclose(fe.dynamic.prev_xy[carried], [prev[int(fe.dynamic.ids[i])] for i in carried])
+        new = [i for i, q in enumerate(fr.dynamic_ids) if int(q) not in anchor]
+        if new:
+            pts = flight.renderer.raycast(flight.T_dW(k), fr.dynamic_xy[new])
+            anchor.update({int(fr.dynamic_ids[i]): p for i, p in zip(new, pts, strict=True)})
+        old_ids = [i for i, q in enumerate(fr.dynamic_ids) if int(q) in anchor and i not in new]
+        if old_ids:
+            P = np.array([anchor[int(fr.dynamic_ids[i])] for i in old_ids])
+            xy = fr.dynamic_xy[old_ids]
+            uv_obs = _project_px(cal.dynamic_camera, np.eye(4), np.hstack([xy, np.ones((xy.shape[0], 1))]))
+            errors.append(np.linalg.norm(uv_obs - _project_px(cal.dynamic_camera, flight.T_dW(k), P), axis=1))
+    err = np.concatenate(errors)
+    err = err[np.isfinite(err)]
+    assert fe.stats.summary()["gimbal_images_between"] == 12
+    # same bounds as the frame-by-frame test above (the gimbal camera rolls 25 deg in 0.7 s here)
+    assert err.size > 100 and np.median(err) < 1.5 and np.percentile(err, 95) < 4.0, (np.median(err), err.size)
+
+
 # ------------------------------------------------------------------ geometry helpers
 def _random_scene(rng: np.random.Generator, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     T = np.eye(4)

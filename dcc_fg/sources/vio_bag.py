@@ -42,7 +42,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -69,6 +69,10 @@ class VioFrame:
 
     ``timestamp_ns`` is the static image's stamp, ``dynamic_timestamp_ns`` the gimbal image's (they
     differ for unsynchronized cameras); ``after_gap`` marks the first frame after an image or IMU gap.
+    ``dynamic_between`` are the gimbal images without a static partner taken since the previous frame's
+    gimbal image (a gimbal camera faster than the static one), oldest first, with their stamps
+    ``dynamic_between_ns``: the front end tracks through them so that its gimbal tracks step from
+    image to image.
     """
 
     timestamp_ns: int
@@ -76,6 +80,8 @@ class VioFrame:
     dynamic: NDArray[np.uint8] | None = None
     dynamic_timestamp_ns: int = 0
     after_gap: bool = False
+    dynamic_between: tuple[NDArray[np.uint8], ...] = ()
+    dynamic_between_ns: tuple[int, ...] = ()
 
 
 @dataclass
@@ -273,6 +279,7 @@ class VioBag:
         self.tolerance_ns = tolerance_ns
         self.pairing_statistics: dict[str, float | int | None] | None = None
         self._pairs = self._pair_images(tolerance_ns)
+        self._between = self._gimbal_images_between()
         s = self._stamps[static_topic]
         self.frame_times = np.array(sorted(s[i] for i, _ in self._pairs), dtype=np.int64)
         self.image_gaps: list[tuple[int, int]] = []
@@ -318,6 +325,28 @@ class VioBag:
         self.pairing_statistics = pairing.statistics()
         paired = {i for i, _ in pairing.pairs}
         return sorted(pairing.pairs + [(i, -1) for i in range(len(s)) if i not in paired], key=lambda p: s[p[0]])
+
+    def _gimbal_images_between(self) -> dict[int, list[int]]:
+        """Per frame (position in the pairs), the unpaired gimbal images (indices) since the previous
+        paired gimbal image, by gimbal stamp; unpaired images after the last paired one are not used."""
+        d_topic = self.dynamic_topic
+        if not d_topic:
+            return {}
+        d = np.asarray(self._stamps[d_topic], dtype=np.int64)
+        paired = sorted((int(d[j]), n) for n, (_, j) in enumerate(self._pairs) if j >= 0)
+        used = {j for _, j in self._pairs if j >= 0}
+        paired_stamps = np.array([t for t, _ in paired], dtype=np.int64)
+        out: dict[int, list[int]] = {}
+        for j in sorted((j for j in range(d.size) if j not in used), key=lambda j: int(d[j])):
+            pos = int(np.searchsorted(paired_stamps, d[j], side="right"))
+            if pos < len(paired) and pos > 0:  # between two paired gimbal images
+                out.setdefault(paired[pos][1], []).append(j)
+        return out
+
+    @property
+    def gimbal_images_between(self) -> int:
+        """Gimbal images without a static partner that the front end tracks through."""
+        return sum(len(v) for v in self._between.values())
 
     def _frames_after_gaps(self) -> set[int]:
         """Frame stamps that come first after an image gap or after an IMU gap."""
@@ -371,21 +400,52 @@ class VioBag:
         s_topic, d_topic = self.static_topic, self.dynamic_topic
         topics = [s_topic] + ([d_topic] if d_topic else [])
         first_s = self._first[s_topic]
+        n_frames = len(self._pairs)
+        # groups 0..n_frames-1: the frames; then one group per gimbal image between frames
+        extra_of: dict[int, tuple[int, int]] = {}  # group -> (frame, position among its images between)
         if d_topic:
             first_d = self._first[d_topic]
             groups: list[tuple[int, ...]] = [(first_s[i], first_d[j] if j >= 0 else -1) for i, j in self._pairs]
+            for n, js in sorted(self._between.items()):
+                for pos, j in enumerate(js):
+                    extra_of[len(groups)] = (n, pos)
+                    groups.append((-1, first_d[j]))
         else:
             groups = [(first_s[i],) for i, _ in self._pairs]
-        order = sorted(range(len(self._pairs)), key=lambda n: self._stamps[s_topic][self._pairs[n][0]])
+        order = sorted(range(n_frames), key=lambda n: self._stamps[s_topic][self._pairs[n][0]])
         rank = {n: r for r, n in enumerate(order)}
+        between: dict[int, dict[int, tuple[NDArray[np.uint8], int]]] = {}
+        waiting: dict[int, VioFrame] = {}  # frames whose images between have not all been read yet
         ready: dict[int, VioFrame] = {}
         next_out = 0
-        for n, images in stream_image_groups(self.path, topics, groups, to_gray8):
-            s_img = images[0]
-            assert s_img is not None
-            d = images[1] if d_topic else None
-            d_img, d_ts = (d.image, d.stamp_ns) if d is not None else (None, 0)
-            ready[rank[n]] = VioFrame(s_img.stamp_ns, s_img.image, d_img, d_ts, s_img.stamp_ns in self._gap_starts)
+
+        def complete(n: int) -> bool:
+            return len(between.get(n, {})) == len(self._between.get(n, ()))
+
+        for g, images in stream_image_groups(self.path, topics, groups, to_gray8):
+            if g in extra_of:
+                n, pos = extra_of[g]
+                img = images[1]
+                assert img is not None
+                between.setdefault(n, {})[pos] = (img.image, img.stamp_ns)
+                if n not in waiting or not complete(n):
+                    continue
+                frame = waiting.pop(n)
+            else:
+                n = g
+                s_img = images[0]
+                assert s_img is not None
+                d = images[1] if d_topic else None
+                d_img, d_ts = (d.image, d.stamp_ns) if d is not None else (None, 0)
+                frame = VioFrame(s_img.stamp_ns, s_img.image, d_img, d_ts, s_img.stamp_ns in self._gap_starts)
+                if not complete(n):
+                    waiting[n] = frame
+                    continue
+            got = between.pop(n, {})
+            steps = [got[p] for p in sorted(got)]
+            ready[rank[n]] = replace(
+                frame, dynamic_between=tuple(i for i, _ in steps), dynamic_between_ns=tuple(t for _, t in steps)
+            )
             while next_out in ready:
                 yield ready.pop(next_out)
                 next_out += 1

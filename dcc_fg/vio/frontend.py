@@ -225,6 +225,7 @@ class FrontendStats:
     matches: int = 0
     pairs_split: int = 0
     frames_without_gimbal: int = 0
+    gimbal_images_between: int = 0
 
     def summary(self) -> dict[str, float]:
         def med(x: list[float]) -> float:
@@ -243,6 +244,7 @@ class FrontendStats:
             "ransac_inlier_ratio": 1.0 - self.ransac_rejected / max(self.ransac_tested, 1),
             "matches": float(self.matches),
             "frames_without_gimbal": float(self.frames_without_gimbal),
+            "gimbal_images_between": float(self.gimbal_images_between),
         }
 
 
@@ -263,6 +265,8 @@ class CameraTracker:
         #: normalized positions 1..H frames ago, (N, H, 2), NaN where the track did not exist yet
         self.hist = np.zeros((0, max(config.ransac_window, 1), 2))
         self._prev_ids = np.zeros(0, dtype=np.int64)
+        #: normalized positions at the last frame while stepping through images between frames, else None
+        self.frame_xy: FloatArray | None = None
         self._lk = {
             "winSize": (config.klt_window, config.klt_window),
             "maxLevel": config.klt_levels,
@@ -275,15 +279,25 @@ class CameraTracker:
     def keep(self, mask: BoolArray) -> None:
         self.pts, self.ids, self.ages = self.pts[mask], self.ids[mask], self.ages[mask]
         self.xy, self.prev_xy, self.hist = self.xy[mask], self.prev_xy[mask], self.hist[mask]
+        if self.frame_xy is not None:
+            self.frame_xy = self.frame_xy[mask]
 
-    def track(self, gray: NDArray[np.uint8]) -> int:
-        """Track into a new image; returns how many tracks the forward-backward check dropped."""
+    def track(self, gray: NDArray[np.uint8], step: bool = False) -> int:
+        """Track into a new image; returns how many tracks the forward-backward check dropped.
+
+        ``step``: an image between two frames (no frame of its own): the tracks move on, but their
+        previous-frame positions, history and ages stay those of the last frame."""
         if gray.shape[::-1] != tuple(self.camera.resolution):
             w, h = self.camera.resolution
             raise ValueError(f"image is {gray.shape[1]}x{gray.shape[0]} but the camera model says {w}x{h}")
         prev, self.gray = self.gray, gray
-        self.prev_xy = self.xy.copy()
-        self.hist = np.concatenate([self.xy[:, None, :], self.hist[:, :-1]], axis=1)
+        if step and self.frame_xy is None:
+            self.frame_xy = self.xy.copy()
+        elif not step:
+            at_frame = self.xy if self.frame_xy is None else self.frame_xy
+            self.prev_xy = at_frame.copy()
+            self.hist = np.concatenate([at_frame[:, None, :], self.hist[:, :-1]], axis=1)
+            self.frame_xy = None
         if prev is None or len(self) == 0:
             return 0
         p0 = self.pts.reshape(-1, 1, 2)
@@ -296,7 +310,8 @@ class CameraTracker:
         inside = (p1[:, 0] >= b) & (p1[:, 0] <= w - 1 - b) & (p1[:, 1] >= b) & (p1[:, 1] <= h - 1 - b)
         ok = (st1.ravel() == 1) & (st2.ravel() == 1) & (fb < self.config.fb_threshold) & inside
         self.pts = p1.astype(np.float32)
-        self.ages = self.ages + 1
+        if not step:
+            self.ages = self.ages + 1
         self.xy = self.camera.undistort_points(self.pts.astype(np.float64)) if len(self) else self.xy
         n_bad = int((~ok & inside).sum())
         self.keep(ok)
@@ -444,6 +459,15 @@ class Frontend:
         if self.dynamic is not None and not gimbal:
             self.stats.frames_without_gimbal += 1
         return self.frame(timestamp_ns, gimbal)
+
+    def track_gimbal(self, dynamic_image: NDArray[np.generic]) -> None:
+        """Step the gimbal tracks through a gimbal image without a static partner (a gimbal camera
+        faster than the static one): KLT and its forward-backward check only, no detection or
+        matching; the next :meth:`process` continues from this image."""
+        if self.dynamic is None:
+            return
+        self.stats.fb_rejected += self.dynamic.track(to_gray8(dynamic_image), step=True)
+        self.stats.gimbal_images_between += 1
 
     def frame(self, timestamp_ns: int, with_gimbal: bool = True) -> TrackFrame:
         """The current observations as a TrackFrame (without the gimbal camera's when ``with_gimbal``

@@ -265,6 +265,7 @@ def run_statistics(
             "tolerance_ms": None if vb.tolerance_ns is None else vb.tolerance_ns / 1e6,
             "time_offsets_start_s": list(driver.options.offsets),
             **(vb.pairing_statistics or {}),
+            "gimbal_images_between_frames": vb.gimbal_images_between,
         },
         "frames_outside_imu": worker.counters["skipped"],
         "image_gaps": len(vb.image_gaps),

@@ -155,6 +155,8 @@ class _Tracker:
                 fe.reset()
                 self.resets += 1
             T_ds = None if mono else spec.calibration.T_ds(self.thetas.at(t))
+            for image in vf.dynamic_between:
+                fe.track_gimbal(image)
             frame = fe.process(t, vf.static, vf.dynamic, T_ds=T_ds)
             if vf.dynamic is not None:
                 frame = dataclasses.replace(frame, dynamic_timestamp_ns=int(vf.dynamic_timestamp_ns))
