@@ -29,8 +29,10 @@ from dcc_fg.sim.trajectory import (
     simulate_flight,
     simulate_tracks,
 )
+from dcc_fg.util.errors import EstimatorError
 from dcc_fg.vio.backend import InitialState, VioOptions, VioResult, run_vio
 from dcc_fg.vio.backend.runner import drop_implausible_imu
+from dcc_fg.vio.backend.window import FixedLagWindow
 from dcc_fg.vio.evaluate import GroundTruth, evaluate_trajectory
 from dcc_fg.vio.health import vio_health
 
@@ -55,8 +57,9 @@ class Flight:
             int(tr.t_ns[0]), tr.T_WI[0], tr.v_W[0], tr.acc_bias[0], tr.gyro_bias[0], tr.theta[0] + 0.03
         )
         # the offsets are known (0): this is about IMU-gap recovery. With them estimated (the default) the
-        # segment after the gap measured 4.7x the clean APE on this flight (2 segments instead of 3; README
-        # Limitations)
+        # offsets stay within 0.04 ms of 0 but the ratio below measured 4.7x: the restarted window then
+        # does not fail a second time (2 segments instead of 3), and the millimetre APE of a few seconds
+        # after a restart varies 2-3x with the start state and the window evaluated (README Limitations)
         self.options = VioOptions(mode="dcc", sigma=0.5 / 460.0, estimate_time_offsets=False)
         self.gt = GroundTruth(tr.t_ns, tr.T_WI, tr.t_ns, tr.theta)
 
@@ -142,3 +145,36 @@ def test_one_1e30_sample_is_dropped_and_changes_nothing(
     with caplog.at_level(logging.WARNING):
         kept, n = drop_implausible_imu(short, f.imu_cfg)
     assert n == 1 and len(kept) == 9 and "dropped 1 IMU samples" in caplog.text
+
+
+def test_a_window_restart_that_fails_falls_back_to_the_state_alone(
+    clean_run: dict[str, Any], monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    """gtsam finds the restarted window indeterminate (forced here at the restart after the IMU gap):
+    the smoother restarts from the keyframe's state alone (recovery priors, no observations) and the run
+    goes on; if even that fails, the run stops with an EstimatorError naming the keyframe, not a raw
+    gtsam traceback."""
+    f: Flight = clean_run["flight"]
+    imu = f.truth.imu
+    t0 = int(f.truth.t_ns[0])
+    keep = (imu.t_ns < t0 + int(GAP[0] * NS)) | (imu.t_ns > t0 + int(GAP[1] * NS))
+    gap_imu = ImuSamples(imu.t_ns[keep], imu.acc[keep], imu.gyro[keep])
+    real_restart = FixedLagWindow.restart
+    calls = {"n": 0, "fail": 1}
+
+    def flaky(self: FixedLagWindow, graph: Any, values: Any, stamps: dict[int, int]) -> None:
+        calls["n"] += 1
+        if 1 < calls["n"] <= 1 + calls["fail"]:  # the first call starts the run
+            raise RuntimeError("Indeterminate linear system detected while working near variable (forced)")
+        real_restart(self, graph, values, stamps)
+
+    monkeypatch.setattr(FixedLagWindow, "restart", flaky)
+    with caplog.at_level(logging.WARNING):
+        res = f.run(gap_imu)
+    assert res.stats["restart_fallbacks"] == 1 and "restarting from its state alone" in caplog.text
+    assert res.stats["segment_count"] >= 2 and res.timestamps_ns[-1] > t0 + int(13 * NS)
+    # not diverged: per-segment APE after the restart within a few cm (a divergent restart is metres)
+    assert per_segment_ape(res, f.gt, res.stats["segments"][1]["start_ns"] + int(f.options.lag * NS)) < 0.05
+    calls.update(n=0, fail=2)
+    with pytest.raises(EstimatorError, match=r"could not be restarted at keyframe \d+ .* even from its state alone"):
+        f.run(gap_imu)

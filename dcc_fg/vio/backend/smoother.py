@@ -31,6 +31,7 @@ from numpy.typing import NDArray
 
 from dcc_fg.data.vio import ImuConfig, ImuSamples, TrackFrame
 from dcc_fg.model import GimbalCalibration
+from dcc_fg.util.errors import EstimatorError
 from dcc_fg.vio.backend.cameras import GIMBAL, STATIC, CameraRig
 from dcc_fg.vio.backend.divergence import DivergenceLimits, divergence
 from dcc_fg.vio.backend.exposure import ExposureModel
@@ -448,7 +449,7 @@ class VioSmoother:
         if frame is not None:
             self._observe(k, frame, graph, values, stamps)
             self.prev_static = dict(zip(frame.static_ids.tolist(), frame.static_xy, strict=True))
-        self.window.restart(graph, values, stamps)
+        self._restart_window(graph, values, stamps, k, t, pose, v, bias, theta if dcc else None)
         self._refresh()
         self.healthy_k = k
         self._after_keyframe(k, check=False)
@@ -709,7 +710,53 @@ class VioSmoother:
         self.exposure.anchor(graph, new, stamps, t)
         if theta is not None:
             self.rig.add_gimbal_camera_pose(k, t, pose, theta, graph, new, stamps)
-        self.window.restart(graph, new, stamps)
+        v = values.atVector(velocity_key(k))
+        self._restart_window(graph, new, stamps, k, t, pose, v, values.atConstantBias(bias_key(k)), theta)
+
+    def _restart_window(
+        self,
+        graph: gtsam.NonlinearFactorGraph,
+        values: gtsam.Values,
+        stamps: dict[int, int],
+        k: int,
+        t: int,
+        pose: gtsam.Pose3,
+        v: FloatArray,
+        bias: gtsam.imuBias.ConstantBias,
+        theta: FloatArray | None,
+    ) -> None:
+        """A fresh window from ``graph``; if gtsam finds that system indeterminate (loose restart priors
+        and few observations can leave it too poorly conditioned), a fresh window from keyframe k's
+        state alone: the recovery priors on pose, velocity, bias (and joint angles, ``theta`` not None)
+        and no observations (landmarks and tracks dropped)."""
+        try:
+            self.window.restart(graph, values, stamps)
+            return
+        except RuntimeError as err:
+            first = " ".join(str(err).strip().split("\n\n")[0].split())
+        log.warning(
+            "restarting the window at keyframe %d failed (%s); restarting from its state alone (recovery priors, "
+            "no observations)",
+            k,
+            first,
+        )
+        self.stats["restart_fallbacks"] = self.stats.get("restart_fallbacks", 0) + 1
+        self.landmarks.clear()
+        self.exposure.forget(k + 1)
+        g, vals, st = anchor_factors(k, t, pose, v, bias, theta, AnchorSigmas.recovery(self.opt))
+        self.exposure.anchor(g, vals, st, t)
+        if theta is not None:
+            self.rig.add_gimbal_camera_pose(k, t, pose, theta, g, vals, st)
+        try:
+            self.window.restart(g, vals, st)
+        except RuntimeError as err:
+            raise EstimatorError(
+                "VIO smoother",
+                f"the window could not be restarted at keyframe {k} (t_ns {t}) even from its state alone: "
+                + " ".join(str(err).strip().split("\n\n")[0].split()),
+                "check the IMU noise settings (imu.yaml) and the camera calibration; rerun with -v for the updates "
+                "before it",
+            ) from err
 
     def result(self) -> VioResult:
         """Every keyframe's latest estimate, in time order, with the run's counters and the recovery
