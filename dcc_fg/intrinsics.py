@@ -24,6 +24,7 @@ errors (an inadequate distortion model, a target that is not flat).
 from __future__ import annotations
 
 import logging
+from collections import deque
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -41,6 +42,7 @@ from dcc_fg.io.bags import BagTopicImages, is_bag
 from dcc_fg.io.camchain import CamchainEntry, camchain_to_yaml, load_camchain
 from dcc_fg.io.folders import IMAGE_SUFFIXES, list_timestamped, read_image
 from dcc_fg.io.outputs import write_text_atomic
+from dcc_fg.sources.parallel_detection import detect_images
 from dcc_fg.targets import TargetGeometry
 from dcc_fg.util.errors import stage
 from dcc_fg.util.health import UnhealthyResultError
@@ -174,8 +176,10 @@ def detect_views(
     every: int = 1,
     min_corners: int = 12,
     progress: bool = True,
+    jobs: int = 1,
 ) -> tuple[list[View], tuple[int, int], int, str]:
-    """Detect the target in one camera's images, streaming (only corners are kept).
+    """Detect the target in one camera's images, streaming (only corners are kept), on ``jobs``
+    processes (:mod:`dcc_fg.sources.parallel_detection`; the same views for any value).
 
     Returns:
         (views with >= ``min_corners`` corners, resolution (w, h), images read, description).
@@ -187,21 +191,30 @@ def detect_views(
     if every < 1:
         raise ValueError("every must be >= 1")
     images, count, where = camera_images(path, camera, topic)
+    read: deque[tuple[int, str]] = deque()  # stamp and source of the images in flight
+    size_of: dict[str, tuple[int, int]] = {}
+
+    def every_nth() -> Iterator[NDArray[np.generic]]:
+        for k, (ts, img, src) in enumerate(images):
+            if k % every:
+                continue
+            size = (int(img.shape[1]), int(img.shape[0]))
+            first = size_of.setdefault("first", size)
+            if size != first:
+                raise ValueError(f"{src}: image is {size[0]}x{size[1]}, earlier images of {where} are {first}")
+            read.append((ts, src))
+            yield img
+
     views: list[View] = []
-    resolution: tuple[int, int] | None = None
     n_read = 0
-    for k, (ts, img, src) in enumerate(tqdm(images, total=count, desc=f"detect {camera}", disable=not progress)):
-        if k % every:
-            continue
+    total = (count + every - 1) // every
+    results = detect_images(every_nth(), target, detect_target, jobs)
+    for obs in tqdm(results, total=total, desc=f"detect {camera}", disable=not progress):
+        ts, src = read.popleft()
         n_read += 1
-        size = (int(img.shape[1]), int(img.shape[0]))
-        if resolution is None:
-            resolution = size
-        elif size != resolution:
-            raise ValueError(f"{src}: image is {size[0]}x{size[1]}, earlier images of {where} are {resolution}")
-        obs = detect_target(img, target)
         if len(obs) >= min_corners:
             views.append(View(ts, obs, src))
+    resolution = size_of.get("first")
     if resolution is None:
         raise ValueError(f"{where}: no images")
     if not views:
@@ -397,6 +410,7 @@ def run_intrinsics(
     max_rms: float = 2.0,
     progress: bool = True,
     accept_unhealthy: bool = False,
+    jobs: int = 1,
 ) -> IntrinsicsResult:
     """Detect, select views, calibrate, and (if ``out``) write the camchain entry.
 
@@ -417,10 +431,11 @@ def run_intrinsics(
         accept_unhealthy: return (and write) a result that failed a health check; otherwise
             :class:`~dcc_fg.util.health.UnhealthyResultError` is raised and nothing is written. The
             report is in ``result.extra['health']``.
+        jobs: processes detecting the target (same views for any value; 1: this process only).
     """
     if model not in MODELS:
         raise ValueError(f"camera model '{model}' is not one of {', '.join(MODELS)}")
-    views, resolution, n_read, where = detect_views(data, camera, target, topic, every, min_corners, progress)
+    views, resolution, n_read, where = detect_views(data, camera, target, topic, every, min_corners, progress, jobs)
     used = select_views(views, max_views)
     result = calibrate_intrinsics(used, target, resolution, model, where)
     result.n_images, result.n_detected = n_read, len(views)

@@ -13,6 +13,7 @@ from dcc_fg.io.bags import is_bag
 from dcc_fg.io.output_set import OutputFiles
 from dcc_fg.io.outputs import write_json
 from dcc_fg.targets import load_target
+from dcc_fg.util.parallel import resolve_jobs
 from dcc_fg.util.provenance import run_record
 
 INTRINSICS_SUMMARY = "calibrate one camera's intrinsics and write a Kalibr camchain YAML"
@@ -54,8 +55,10 @@ def intrinsics_command(args: argparse.Namespace) -> int:
         args.accept_unhealthy,
     )
     target = load_target(args.target)
+    jobs = resolve_jobs(args.jobs)
     with outputs:
-        result = run_intrinsics(args.data, target, out=None, progress=common.progress_wanted(args), **asdict(options))
+        progress = common.progress_wanted(args)
+        result = run_intrinsics(args.data, target, out=None, progress=progress, jobs=jobs, **asdict(options))
         health = common.judge_health(result.extra["health"], options.accept_unhealthy)
         bag_topic = (args.topic or f"/{args.camera}/image_raw") if is_bag(Path(args.data)) else None
         outputs.seed("--out")  # an existing camchain keeps its other cameras
@@ -73,6 +76,14 @@ def add_parser(sub: Any, parent: argparse.ArgumentParser) -> None:
     i.add_argument("data", help="ROS1 .bag, ROS2 bag folder, or a folder with <camera>/<timestamp_ns>.png images")
     i.add_argument("--target", required=True, help="Kalibr target YAML (checkerboard or aprilgrid; metres)")
     i.add_argument("--camera", default="cam0", help="camchain entry and image sub-folder (default cam0)")
+    i.add_argument(
+        "--jobs",
+        type=int,
+        default=0,
+        metavar="N",
+        help="processes detecting the target (default 0: every usable core; 1: this process only; the same "
+        "corners either way)",
+    )
     i.add_argument(
         "--model",
         default="pinhole-radtan",

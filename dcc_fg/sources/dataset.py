@@ -18,7 +18,8 @@ are the static frame's, in ns; pixels are in the distorted images; joint angles 
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable, Iterable, Mapping
+from collections import deque
+from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -27,7 +28,7 @@ import numpy as np
 from numpy.typing import NDArray
 from tqdm import tqdm
 
-from dcc_fg.data import CalibrationDataset, Observation, Snapshot
+from dcc_fg.data import CalibrationDataset, Snapshot
 from dcc_fg.detection import detect_target
 from dcc_fg.io.bags import BagImagePairs, BagTopicImages
 from dcc_fg.io.camchain import CamchainEntry, load_camchain
@@ -43,14 +44,13 @@ from dcc_fg.io.folders import (
 from dcc_fg.io.layout import Layout, detect_layout
 from dcc_fg.io.pairing import DEFAULT_TOLERANCE_NS, Pairing
 from dcc_fg.sources.detections import read_detection_folder
+from dcc_fg.sources.parallel_detection import Detector, detect_images, detect_pairs
 from dcc_fg.sync import CameraStream
 from dcc_fg.targets import TargetGeometry, load_target
 
 log = logging.getLogger(__name__)
 
 __all__ = ["Detector", "Layout", "detect_layout", "load_dataset", "load_streams"]
-
-Detector = Callable[[NDArray[np.generic], TargetGeometry], Observation]
 
 
 def _common(snap: Snapshot) -> int:
@@ -74,14 +74,23 @@ def _detect_frames(
     detector: Detector,
     progress: bool,
     desc: str,
+    jobs: int = 1,
 ) -> list[Snapshot]:
+    """Detect the target in every pair (read here, detected on ``jobs`` processes), in input order."""
+    meta: deque[tuple[int, NDArray[np.float64] | None]] = deque()  # stamp and joints of the pairs in flight
+
+    def images() -> Iterator[tuple[NDArray[np.generic], NDArray[np.generic]]]:
+        for fr in frames:
+            _check_resolution(fr.static, entries[0], names[0], fr.static_source)
+            _check_resolution(fr.dynamic, entries[1], names[1], fr.dynamic_source)
+            meta.append((fr.timestamp_ns, fr.joints))
+            yield fr.static, fr.dynamic
+
     snapshots = []
-    for fr in tqdm(frames, total=total, desc=desc, unit="pair", disable=not progress, leave=False):
-        _check_resolution(fr.static, entries[0], names[0], fr.static_source)
-        _check_resolution(fr.dynamic, entries[1], names[1], fr.dynamic_source)
-        obs_s = detector(fr.static, target)
-        obs_d = detector(fr.dynamic, target)
-        snapshots.append(Snapshot(fr.timestamp_ns, obs_s, obs_d, fr.joints))
+    results = detect_pairs(images(), target, detector, jobs)
+    for obs_s, obs_d in tqdm(results, total=total, desc=desc, unit="pair", disable=not progress, leave=False):
+        stamp, joints = meta.popleft()
+        snapshots.append(Snapshot(stamp, obs_s, obs_d, joints))
     return snapshots
 
 
@@ -200,6 +209,7 @@ def load_dataset(
     detector: Detector | None = None,
     progress: bool = True,
     report: dict[str, object] | None = None,
+    jobs: int = 1,
 ) -> CalibrationDataset:
     """Read a bag, image folder or detection folder into a calibration dataset.
 
@@ -220,6 +230,8 @@ def load_dataset(
         detector: ``detector(image, target) -> Observation``; default
             :func:`dcc_fg.detection.detect_target`.
         progress: show a tqdm progress bar over the image pairs (on stderr).
+        jobs: processes detecting the target (:mod:`dcc_fg.sources.parallel_detection`; the same
+            corners in the same order for any value); 1: this process only.
         report: if given, filled with counts for a summary: ``layout``, ``pairs`` (image pairs
             after timestamp pairing), ``unpaired_static`` / ``unpaired_dynamic`` (frame counts
             without a partner), ``detected_static`` / ``detected_dynamic`` (pairs where the
@@ -254,7 +266,9 @@ def load_dataset(
         pairing = frames.pairing
         detector = detector or detect_target
         desc = f"detect {path.name}"
-        snapshots = _detect_frames(frames, len(frames), geometry, cams.entries, cams.names, detector, progress, desc)
+        snapshots = _detect_frames(
+            frames, len(frames), geometry, cams.entries, cams.names, detector, progress, desc, jobs
+        )
     kept = _keep(snapshots, min_common_points, where, geometry)
     if report is not None:
         report.update(_input_report(layout, pairing, snapshots, kept))
@@ -289,6 +303,22 @@ def _stream_frames(path: Path, layout: Layout, cams: _CameraPair, topics: tuple[
     return [(BagTopicImages(path, t), f"{path}: topic {t}") for t in (static_topic, dynamic_topic)]
 
 
+def _stream_images(
+    frames: Iterable[Any], from_files: bool, entry: CamchainEntry, name: str, stamps: list[int]
+) -> Iterator[NDArray[np.generic]]:
+    """The images of one camera's frames (``(stamp, file)`` or ``(stamp, image, where)``), size-checked;
+    their stamps are appended to ``stamps`` as they are read."""
+    for item in frames:
+        if from_files:
+            stamp, file = item
+            image, source = read_image(file), str(file)
+        else:
+            stamp, image, source = item
+        _check_resolution(image, entry, name, source)
+        stamps.append(int(stamp))
+        yield image
+
+
 def load_streams(
     path: str | Path,
     camchain: str | Path | Mapping[str, CamchainEntry],
@@ -300,11 +330,13 @@ def load_streams(
     dynamic_topic: str | None = None,
     detector: Detector | None = None,
     progress: bool = True,
+    jobs: int = 1,
 ) -> CameraStreams:
     """Detect the target in every frame of each camera on its own (no pairing): the input of the
     calibration from unsynchronized or continuously moving recordings (:mod:`dcc_fg.sync`).
 
-    Args: as :func:`load_dataset` (image folders and bags; a detection folder is already paired).
+    Args: as :func:`load_dataset` (image folders and bags; a detection folder is already paired;
+    ``jobs`` processes detect each camera's frames).
 
     Raises:
         ValueError: naming the file or topic at fault (layout, topic, image size, stamps that go
@@ -320,18 +352,12 @@ def load_streams(
     streams = []
     for (frames, where), entry, name in zip(_stream_frames(path, layout, cams, (static_topic, dynamic_topic)),
                                             cams.entries, cams.names, strict=True):  # fmt: skip
-        stamps, observations = [], []
-        for item in tqdm(
-            frames, total=len(frames), desc=f"detect {name}", unit="frame", disable=not progress, leave=False
-        ):
-            if layout == "image_folder":
-                stamp, file = item
-                image, source = read_image(file), str(file)
-            else:
-                stamp, image, source = item
-            _check_resolution(image, entry, name, source)
-            stamps.append(int(stamp))
-            observations.append(detector(image, geometry))
+        stamps: list[int] = []
+        images = _stream_images(frames, layout == "image_folder", entry, name, stamps)
+        results = detect_images(images, geometry, detector, jobs)
+        observations = list(
+            tqdm(results, total=len(frames), desc=f"detect {name}", unit="frame", disable=not progress, leave=False)
+        )
         if not stamps:
             raise ValueError(f"{where}: no frames")
         order = np.argsort(np.asarray(stamps, dtype=np.int64), kind="stable")

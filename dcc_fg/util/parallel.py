@@ -1,0 +1,89 @@
+"""Ordered, bounded parallel map over a stream: the process pool behind ``--jobs``.
+
+:func:`ordered_map` applies a picklable top-level function to a stream of items in ``jobs`` worker
+processes and yields the results **in input order**, with at most ``window`` items in flight (submitted
+and not yet yielded), so a long stream (a 2,000-frame bag) is processed in bounded memory while the
+caller keeps reading. ``jobs = 1`` is a plain lazy ``map`` in this process (no pool at all).
+
+Workers come from a ``forkserver`` context: no fork of a process that may hold OpenCV or GTSAM worker
+threads, and module imports paid once by the server. Like every ``spawn``/``forkserver`` pool, a
+script that calls this with ``jobs > 1`` must guard its entry point with
+``if __name__ == "__main__":`` (the ``dcc-fg`` command and pytest do); the Python API therefore
+defaults to ``jobs = 1`` and the command line to every usable core.
+
+An exception raised by ``func`` in a worker is re-raised here, at the position of its item (the
+results before it have been yielded); the remaining work is cancelled.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+from collections import deque
+from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import Future, ProcessPoolExecutor
+from typing import TypeVar
+
+T = TypeVar("T")
+R = TypeVar("R")
+
+#: In-flight items per worker by default: enough to hide the caller's reading between results.
+WINDOW_PER_JOB = 3
+
+
+def usable_cores() -> int:
+    """CPU cores this process may run on (its affinity mask, e.g. a container's cpuset), at least 1."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # not Linux
+        return max(1, os.cpu_count() or 1)
+
+
+def resolve_jobs(jobs: int | None) -> int:
+    """``jobs`` as a worker count: None or 0 means every usable core; negative is an error."""
+    if jobs is None or jobs == 0:
+        return usable_cores()
+    if jobs < 0:
+        raise ValueError(f"--jobs must be >= 0 (0: every usable core), got {jobs}")
+    return int(jobs)
+
+
+def ordered_map(
+    func: Callable[[T], R],
+    items: Iterable[T],
+    jobs: int = 1,
+    window: int | None = None,
+    preload: tuple[str, ...] = (),
+) -> Iterator[R]:
+    """``func`` over ``items`` in ``jobs`` processes, results in input order (module docstring).
+
+    Args:
+        func: a module-level function (pickled by reference); its argument and result are pickled.
+        items: read lazily, at most ``window`` ahead of the results yielded.
+        jobs: worker processes; 1 runs ``func`` here, without a pool.
+        window: items in flight (default ``WINDOW_PER_JOB * jobs``).
+        preload: modules the fork server imports once for all workers (e.g. ``("dcc_fg.detection",)``).
+    """
+    if jobs < 1:
+        raise ValueError(f"jobs must be >= 1, got {jobs}")
+    if jobs == 1:
+        yield from map(func, items)
+        return
+    limit = window if window is not None else WINDOW_PER_JOB * jobs
+    if limit < 1:
+        raise ValueError(f"window must be >= 1, got {limit}")
+    ctx = multiprocessing.get_context("forkserver")
+    if preload:
+        ctx.set_forkserver_preload(list(preload))
+    pending: deque[Future[R]] = deque()
+    with ProcessPoolExecutor(max_workers=jobs, mp_context=ctx) as pool:
+        try:
+            for item in items:
+                pending.append(pool.submit(func, item))
+                if len(pending) >= limit:
+                    yield pending.popleft().result()
+            while pending:
+                yield pending.popleft().result()
+        finally:
+            for fut in pending:
+                fut.cancel()
