@@ -39,6 +39,15 @@ from dcc_fg.sync import SyncOptions
 from dcc_fg.time_offset import MAX_SNAPSHOTS, calibrate_streams
 from dcc_fg.util.config import ConfigError
 from dcc_fg.util.provenance import run_record
+from dcc_fg.viz.images import DYNAMIC_DIR, STATIC_DIR, ImageSource
+from dcc_fg.viz.rerun_log import RerunOptions, record_calibration
+
+#: What ``--rerun`` shows of a calibration or validation (help text).
+RERUN_SHOWS = (
+    "per snapshot, both camera images (where the data hold images) with the detected and reprojected corners, the "
+    "chain's frames (static camera, gimbal base, DH links, gimbal camera) and the target in 3D, joint angles and "
+    "residuals over the snapshots"
+)
 
 #: Default of ``--min-common-points``: a snapshot needs this many target points seen by both cameras.
 MIN_COMMON_POINTS = 8
@@ -370,6 +379,20 @@ def calibrate_unsynchronized(
     return out.result, data
 
 
+def image_source(
+    inputs: CalibrationInputs, camchain: Any, reader: ReaderOptions, report: dict[str, Any]
+) -> ImageSource:
+    """Where the images of the snapshots are, for ``--rerun``: paired frames within the sync tolerance;
+    with ``--sync interpolate`` the gimbal frame stamped ``q - (t_d - t_s)`` for a snapshot at static time
+    ``q`` and a static image only where one was exposed within 0.5 ms of ``q`` (corners interpolated
+    elsewhere)."""
+    if reader.sync == "interpolate":
+        delta_ns = int(round(float(report.get("time_offset", {}).get("delta_s", 0.0)) * 1e9))
+        return ImageSource(inputs.data, camchain, {STATIC_DIR: 500_000, DYNAMIC_DIR: 500_000}, -delta_ns)
+    tol = int(round(reader.sync_tolerance_ms * 1e6))
+    return ImageSource(inputs.data, camchain, {STATIC_DIR: tol, DYNAMIC_DIR: tol})
+
+
 def run_calibrate(
     inputs: CalibrationInputs,
     out: Path,
@@ -377,11 +400,14 @@ def run_calibrate(
     progress: bool = False,
     quiet: bool = False,
     config_file: str | Path | None = None,
+    rerun: RerunOptions | None = None,
 ) -> CalibrationResult:
     """Calibrate from ``inputs`` with ``config``; writes ``out`` as one output set
     (:class:`~dcc_fg.io.output_set.OutputSet`: ``out`` is checked before any work, nothing is written
     when the run fails, is interrupted or its result is unhealthy and not accepted).
-    ``config_file``: the ``--config`` file, protected like the inputs."""
+    ``config_file``: the ``--config`` file, protected like the inputs. ``rerun``: also record the run for
+    Rerun (:mod:`dcc_fg.viz.rerun_log`; written before the health checks, so an unhealthy result can be
+    inspected)."""
     if config.solver.mode not in ("encoderless", "encoders"):
         raise ConfigError(f"solver.mode must be encoderless or encoders for calibrate, got {config.solver.mode!r}")
     outputs = OutputSet(out, "calibrate", inputs.by_option(config_file))
@@ -393,6 +419,8 @@ def run_calibrate(
             data = load_calibration_data(inputs, inputs.camchain, config.reader, progress, report)
             initial, data = initial_values(inputs, config.init, config.solver.mode, data)
             result = solve_calibration(initial, data, config.init, config.solver)
+        if rerun is not None:
+            record_calibration(rerun, result, data, image_source(inputs, inputs.camchain, config.reader, report))
         provenance = run_record("calibrate", inputs.paths(), config)
         paths = write_calibration_set(outputs, result, data, report, provenance, config)
     print_written(result, paths, quiet)
@@ -415,17 +443,21 @@ def run_validate(
     progress: bool = False,
     quiet: bool = False,
     config_file: str | Path | None = None,
+    rerun: RerunOptions | None = None,
 ) -> CalibrationResult:
     """Hold ``inputs.calibration`` fixed and estimate the joint angles of ``inputs.data``; writes
-    ``out`` as one output set (see :func:`run_calibrate`)."""
+    ``out`` as one output set (see :func:`run_calibrate`, also for ``rerun``)."""
     if inputs.calibration is None:
         raise ValueError("validate needs --calibration")
     outputs = OutputSet(out, "validate", inputs.by_option(config_file))
     with outputs:
         cal = load_calibration(inputs.calibration)
         report: dict[str, Any] = {}
-        data = load_calibration_data(inputs, validation_camchain(inputs, cal), config.reader, progress, report)
+        camchain = validation_camchain(inputs, cal)
+        data = load_calibration_data(inputs, camchain, config.reader, progress, report)
         result = calibrate(data, cal, CalibrationOptions(mode="validate"))
+        if rerun is not None:
+            record_calibration(rerun, result, data, image_source(inputs, camchain, config.reader, report))
         provenance = run_record("validate", inputs.paths(), config)
         paths = write_calibration_set(outputs, result, data, report, provenance, config)
     print_written(result, paths, quiet)
@@ -518,6 +550,7 @@ def add_parsers(sub: Any, parent: argparse.ArgumentParser) -> None:
                    f"(ns, rad) and summary.json (default ./dcc_fg_calibration). {common.OUT_FOLDER_HELP}")  # fmt: skip
     add_reader_flags(c)
     common.add_config_flag(c, "calibrate")
+    common.add_rerun_flags(c, RERUN_SHOWS)
 
     v = common.add_command(
         sub, "validate", parent, "hold a calibration fixed and estimate only the joint angles of new snapshots",
@@ -534,17 +567,20 @@ def add_parsers(sub: Any, parent: argparse.ArgumentParser) -> None:
                    f"folder of --calibration. {common.OUT_FOLDER_HELP}")  # fmt: skip
     add_reader_flags(v)
     common.add_config_flag(v, "validate")
+    common.add_rerun_flags(v, RERUN_SHOWS)
 
 
 def calibrate_command(args: argparse.Namespace) -> int:
+    rerun = common.rerun_options(args)
     config = common.effective_config(args, CalibrateConfig, "calibrate")
     inputs = CalibrationInputs(args.data, camchain=args.camchain, target=args.target, gimbal=args.gimbal)
-    run_calibrate(inputs, Path(args.out), config, common.progress_wanted(args), args.quiet, args.config)
+    run_calibrate(inputs, Path(args.out), config, common.progress_wanted(args), args.quiet, args.config, rerun)
     return 0
 
 
 def validate_command(args: argparse.Namespace) -> int:
+    rerun = common.rerun_options(args)
     config = common.effective_config(args, ValidateConfig, "validate")
     inputs = CalibrationInputs(args.data, camchain=args.camchain, target=args.target, calibration=args.calibration)
-    run_validate(inputs, Path(args.out), config, common.progress_wanted(args), args.quiet, args.config)
+    run_validate(inputs, Path(args.out), config, common.progress_wanted(args), args.quiet, args.config, rerun)
     return 0

@@ -12,10 +12,12 @@ import argparse
 import logging
 import math
 import sys
+from pathlib import Path
 from typing import Any, TypeVar
 
 from dcc_fg.util.config import apply_overrides, load_yaml_config
 from dcc_fg.util.health import HealthReport, UnhealthyResultError
+from dcc_fg.viz.rerun_log import RerunOptions, require_rerun
 
 T = TypeVar("T")
 
@@ -123,3 +125,23 @@ def float_pair(text: str) -> tuple[float, float]:
     if len(pair) != 2 or not all(math.isfinite(x) for x in pair):
         raise argparse.ArgumentTypeError(f"expects two finite numbers A,B, got {text!r}")
     return pair[0], pair[1]
+
+
+def add_rerun_flags(p: argparse.ArgumentParser, what: str) -> None:
+    """``--rerun FILE.rrd`` and ``--rerun-spawn``: an interactive Rerun recording of the run (``what`` it
+    shows); needs the optional extra dcc-fg[viz]. Not options of the run: they are not recorded in
+    summary.json and do not change the results."""
+    g = p.add_argument_group("interactive visualization (needs pip install dcc-fg[viz])")
+    g.add_argument("--rerun", metavar="FILE.rrd", help=f"write a Rerun recording of the run: {what}. Open it with "
+                   "'rerun FILE.rrd'. Written when the estimate exists, also when its health checks fail (exit 3), "
+                   "so a bad result can be inspected")  # fmt: skip
+    g.add_argument("--rerun-spawn", action="store_true", help="start the Rerun viewer and stream the recording to it")
+
+
+def rerun_options(args: argparse.Namespace) -> RerunOptions:
+    """The ``--rerun`` / ``--rerun-spawn`` request, checked before any work (rerun-sdk installed, a ``.rrd``
+    file name): :class:`~dcc_fg.viz.rerun_log.RerunUnavailableError` names what to install."""
+    path = getattr(args, "rerun", None)
+    options = RerunOptions(Path(path) if path else None, bool(getattr(args, "rerun_spawn", False)))
+    require_rerun(options)
+    return options

@@ -36,6 +36,7 @@ from dcc_fg.vio.backend import VioOptions, write_vio_outputs
 from dcc_fg.vio.frontend import FrontendConfig
 from dcc_fg.vio.health import vio_health
 from dcc_fg.vio.pipeline import BagTopics, PipelineOptions, run_vio_bag
+from dcc_fg.viz.rerun_log import RerunOptions, record_vio
 
 #: Kalibr imu.yaml keys -> ImuConfig fields
 KALIBR_IMU_KEYS = {
@@ -130,6 +131,13 @@ class VioOutputOptions:
 
     accept_unhealthy: bool = False
 
+
+#: What ``--rerun`` shows of a VIO run (help text).
+RERUN_SHOWS = (
+    "per keyframe, the body pose with the static camera and the gimbal chain at the estimated joint angles, the "
+    "trajectory (and the ground truth), joint angles, speed and IMU biases over time. Tracked features and the "
+    "window's landmarks are not recorded (the pipeline does not keep them after the run)"
+)
 
 #: VioOptions fields a config may not set: they are computed from other options.
 DERIVED_SMOOTHER_FIELDS = {"sigma": "run.pixel_sigma (pixels; sigma = pixel_sigma / focal length)"}
@@ -290,16 +298,26 @@ def run_vio(
     quiet: bool = False,
     config_source: str = "options",
     config_file: str | Path | None = None,
+    rerun: RerunOptions | None = None,
+    rerun_ground_truth: str | Path | None = None,
 ) -> Any:
     """Validate the inputs and options, run the VIO over ``inputs.bag`` and write ``out``; returns the
     VioResult. ``config_source`` names where the options came from in error messages; ``config_file``
-    (the ``--config`` file) is protected like the inputs.
+    (the ``--config`` file) is protected like the inputs. ``rerun``: also record the run for Rerun
+    (:func:`dcc_fg.viz.rerun_log.record_vio`, before the health checks, so an unhealthy trajectory can be
+    inspected), with the ground truth ``rerun_ground_truth`` (TUM file or bag; default: the bag's own
+    ``/ground_truth/pose`` topic when it has one).
 
     ``out`` is written as one output set (:class:`~dcc_fg.io.output_set.OutputSet`): checked before any
     work, written only when the run succeeds and its trajectory passes the health checks
     (:func:`~dcc_fg.vio.health.vio_health`; ``config.output.accept_unhealthy`` writes it anyway, marked
     ``health.healthy: false``)."""
     check_config(config, config_source)
+    if rerun_ground_truth is not None:
+        if rerun is None or not rerun.wanted:
+            raise ValueError("--rerun-ground-truth is shown in a recording: give --rerun FILE.rrd or --rerun-spawn")
+        if not Path(rerun_ground_truth).exists():
+            raise FileNotFoundError(f"{rerun_ground_truth}: ground truth (--rerun-ground-truth) not found")
     cal_path, bag = Path(inputs.calibration), Path(inputs.bag)
     if not cal_path.is_file():
         raise FileNotFoundError(f"{cal_path}: calibration file not found")
@@ -324,6 +342,8 @@ def run_vio(
             result, run = run_vio_bag(bag, cal, imu, options, topics, pipeline, progress=bar if progress else None)
         finally:
             bar.close()
+        if rerun is not None:
+            record_vio(rerun, result, cal, imu.T_sI, bag, rerun_ground_truth)
         health = common.judge_health(vio_health(result, imu, options), config.output.accept_unhealthy)
         provenance = run_record("vio", inputs.paths(), config)
         provenance["options"] = config_text_vio(config)
@@ -361,10 +381,12 @@ def print_vio_summary(result: Any, out: Path, n_joints: int) -> None:
 
 def vio_command(args: argparse.Namespace) -> int:
     """The ``dcc-fg vio`` subcommand (see :func:`add_parser`)."""
+    rerun = common.rerun_options(args)
     config = common.effective_config(args, VioConfig, "vio")
     inputs = VioInputs(args.bag, args.calibration, args.imu_yaml, args.camchain)
     source = args.config or "command line"
-    run_vio(inputs, Path(args.out), config, common.progress_wanted(args), args.quiet, source, args.config)
+    progress = common.progress_wanted(args)
+    run_vio(inputs, Path(args.out), config, progress, args.quiet, source, args.config, rerun, args.rerun_ground_truth)
     return 0
 
 
@@ -388,6 +410,10 @@ def add_parser(sub: Any, parent: argparse.ArgumentParser) -> None:
     v.add_argument("--out", required=True, help="output folder for trajectory.tum, joint_angles.csv and "
                    f"summary.json. {common.OUT_FOLDER_HELP}")  # fmt: skip
     common.add_config_flag(v, "vio")
+    common.add_rerun_flags(v, RERUN_SHOWS)
+    v.add_argument("--rerun-ground-truth", metavar="GT", help="ground truth shown in the recording (TUM file, body "
+                   "frame, or a bag with /ground_truth/pose and /ground_truth/joints), aligned as dcc-fg evaluate "
+                   "aligns; default: the bag's own /ground_truth/pose topic when it has one")  # fmt: skip
 
 
 def add_vio_flags(v: argparse.ArgumentParser) -> None:

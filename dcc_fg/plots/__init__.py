@@ -13,8 +13,16 @@ from dcc_fg.plots.calibration import (
 )
 from dcc_fg.plots.chain3d import chain_figure, chain_frames
 from dcc_fg.plots.common import save_figure
+from dcc_fg.plots.joint_band import draw_sigma_band, joint_error_band_figure, read_joint_sigmas_csv
 from dcc_fg.plots.output import write_calibration_outputs
 from dcc_fg.plots.pdf import text_page, write_report_pdf
+from dcc_fg.plots.residual_map import (
+    ResidualGrid,
+    bin_residuals,
+    residual_grids,
+    residual_map_figure,
+    residual_map_summary,
+)
 from dcc_fg.plots.vio import (
     distance_travelled,
     error_over_distance_figure,
@@ -28,11 +36,19 @@ __all__ = [
     "chain_figure",
     "chain_frames",
     "coverage_figure",
+    "bin_residuals",
     "distance_travelled",
+    "draw_sigma_band",
     "error_over_distance_figure",
     "joint_angles_figure",
+    "joint_error_band_figure",
     "parameter_figure",
+    "read_joint_sigmas_csv",
     "residual_figure",
+    "residual_grids",
+    "residual_map_figure",
+    "residual_map_summary",
+    "ResidualGrid",
     "save_figure",
     "snapshot_error_figure",
     "text_page",

@@ -18,9 +18,11 @@ from matplotlib.patches import Circle
 from numpy.typing import NDArray
 
 from dcc_fg.calibrate import CalibrationResult
+from dcc_fg.data import CalibrationDataset
 from dcc_fg.model import GimbalCalibration
 from dcc_fg.plots.chain3d import chain_figure
 from dcc_fg.plots.common import CAMERA_COLORS, new_figure
+from dcc_fg.plots.residual_map import residual_grids, residual_map_figure
 from dcc_fg.studies.calibration_accuracy import T_ds_errors, offset_free_joint_errors
 from factors import chain
 
@@ -451,12 +453,15 @@ def calibration_figures(
     thetas_true: FloatArray | None = None,
     theta: Sequence[float] | None = None,
     target_points: FloatArray | None = None,
+    data: CalibrationDataset | None = None,
 ) -> dict[str, Figure]:
-    """All calibration figures by file stem: residuals, snapshot_errors, coverage, parameters, chain.
+    """All calibration figures by file stem: residuals, (with ``data``) residual_map, snapshot_errors,
+    coverage, parameters, chain.
 
     The chain sketch uses ``theta`` (default: the snapshot whose joint angles are nearest the middle
     of the estimated range) and draws the target of that snapshot when ``target_points`` (target frame,
-    metres) are given.
+    metres) are given. ``data`` is the dataset ``result`` was computed from: its detected corner
+    positions place the residuals over each camera's image (:mod:`dcc_fg.plots.residual_map`).
     """
     L = result.calibration.n_joints
     i_snap = 0
@@ -467,8 +472,10 @@ def calibration_figures(
     elif theta is None:
         theta = np.zeros(L)
     T_st = result.T_st[i_snap] if (target_points is not None and len(result.T_st)) else None
-    return {
-        "residuals": residual_figure(result),
+    figures = {"residuals": residual_figure(result)}
+    if data is not None:
+        figures["residual_map"] = residual_map_figure(residual_grids(result, data))
+    return figures | {
         "snapshot_errors": snapshot_error_figure(result, truth, thetas_true),
         "coverage": coverage_figure(result),
         "parameters": parameter_figure(result.calibration, truth),

@@ -14,6 +14,7 @@ from matplotlib.figure import Figure
 from numpy.typing import NDArray
 
 from dcc_fg.plots.common import new_figure
+from dcc_fg.plots.joint_band import band_mask, draw_sigma_band
 
 FloatArray = NDArray[np.float64]
 MIN_HALF_SPAN_DEG = 1.0  # joint-angle panels span at least +-1 deg around a (near-)constant series
@@ -65,11 +66,14 @@ def joint_angles_figure(
     t: FloatArray,
     ground_truth: FloatArray | None,
     estimates: Mapping[str, FloatArray | tuple[FloatArray, FloatArray]],
+    sigmas: Mapping[str, FloatArray] | None = None,
 ) -> Figure:
     """One panel per joint: angle (deg) over time (s), ground truth in black and each estimate.
 
     ``ground_truth`` is (N, L) sampled at ``t``; each estimate is either (N, L) at ``t`` or a pair
-    ``(t_est, theta_est)``.
+    ``(t_est, theta_est)``. ``sigmas`` maps estimate names to their (N, L) 1-sigma (rad, NaN where not
+    reported): a shaded band ``theta ± sigma`` in the estimate's colour, drawn only where a sigma exists
+    (:func:`dcc_fg.plots.joint_band.draw_sigma_band`).
     """
     t = np.asarray(t, dtype=float)
     series: dict[str, tuple[FloatArray, FloatArray]] = {}
@@ -90,14 +94,21 @@ def joint_angles_figure(
     if len(Ls) != 1 or Ls == {0}:
         raise ValueError(f"joint_angles_figure: all series need the same number of joints L >= 1, got {sorted(Ls)}")
     L = Ls.pop()
+    bands = _band_sigmas(series, sigmas or {})
     fig = new_figure(9.0, 2.3 * L + 0.8)
     axes = np.atleast_1d(fig.subplots(L, 1, sharex=True, squeeze=False)).ravel()
     for j, ax in enumerate(axes):
+        band_deg = []
         for name, (ts, th) in series.items():
             style = {"color": "k", "lw": 2.0} if name == "ground truth" else {"lw": 1.2}
-            ax.plot(ts, np.degrees(th[:, j]), label=name, **style)
+            (line,) = ax.plot(ts, np.degrees(th[:, j]), label=name, **style)
+            if name in bands:
+                sig = bands[name][:, j]
+                if draw_sigma_band(ax, ts, th[:, j], sig, color=line.get_color(), label=f"{name} ±1σ") is not None:
+                    ok = band_mask(th[:, j], sig)
+                    band_deg += [np.degrees(th[ok, j] - sig[ok]), np.degrees(th[ok, j] + sig[ok])]
         # a locked joint (scc) is constant: show it on a readable span instead of an offset axis of 1e-10 deg
-        deg = np.concatenate([np.degrees(th[:, j]) for _, th in series.values()])
+        deg = np.concatenate([np.degrees(th[:, j]) for _, th in series.values()] + band_deg)
         lo, hi = float(deg.min()), float(deg.max())
         if hi - lo < 2.0 * MIN_HALF_SPAN_DEG:
             mid = 0.5 * (lo + hi)
@@ -109,6 +120,23 @@ def joint_angles_figure(
     axes[-1].set_xlabel("time (s)")
     fig.suptitle("Joint angles over time")
     return fig
+
+
+def _band_sigmas(
+    series: Mapping[str, tuple[FloatArray, FloatArray]], sigmas: Mapping[str, FloatArray]
+) -> dict[str, FloatArray]:
+    """The sigmas (rad) of :func:`joint_angles_figure` checked against their estimates' shapes."""
+    out = {}
+    for name, sig in sigmas.items():
+        if name not in series or name == "ground truth":
+            raise ValueError(f"joint_angles_figure: sigmas for '{name}', which is not one of the estimates")
+        sig = np.asarray(sig, float)
+        if sig.shape != series[name][1].shape:
+            raise ValueError(
+                f"joint_angles_figure: sigmas of {name} have shape {sig.shape}, its angles {series[name][1].shape}"
+            )
+        out[name] = sig
+    return out
 
 
 def error_over_distance_figure(ground_truth: FloatArray, estimates: Mapping[str, FloatArray]) -> Figure:

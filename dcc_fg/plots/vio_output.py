@@ -7,7 +7,11 @@ SE(3), or Sim(3) for monocular runs) and draws, in the ground truth's world fram
 
 * ``OUT/vio_trajectory.png``: top view (x-y, metres) of the aligned estimate and the ground truth;
 * ``OUT/vio_joint_angles.png``: joint angles (degrees) over time (seconds since the first keyframe),
-  only when the folder has joint angles (dcc / scc runs), with the ground truth's if it has any;
+  only when the folder has joint angles (dcc / scc runs), with the ground truth's if it has any, and a
+  shaded ±1-sigma band per joint where ``OUT/joint_angles_sigma.csv`` (:mod:`dcc_fg.plots.joint_band`)
+  gives the keyframe's sigma;
+* ``OUT/vio_joint_errors.png``: with joint sigmas *and* ground-truth joint angles, the error against the
+  interpolated truth (degrees) with the ±1-sigma band around zero and the fraction inside it;
 * ``OUT/vio_error.png``: translation error (m) over the distance travelled along the ground truth (m).
 """
 
@@ -18,10 +22,12 @@ from pathlib import Path
 
 import numpy as np
 from matplotlib.figure import Figure
+from numpy.typing import NDArray
 
 from dcc_fg.io.outputs import read_joint_angles_csv
 from dcc_fg.io.tum import read_tum
 from dcc_fg.plots.common import save_figure
+from dcc_fg.plots.joint_band import SIGMA_FILE, joint_error_band_figure, read_joint_sigmas_csv, sigmas_at
 from dcc_fg.plots.vio import error_over_distance_figure, joint_angles_figure, trajectory_topview_figure
 from dcc_fg.vio.evaluate import (
     NS,
@@ -39,7 +45,8 @@ ALIGNMENT_NAMES = {"se3": "SE(3)-aligned", "sim3": "Sim(3)-aligned", "none": "no
 @dataclass(frozen=True)
 class VioFigures:
     """The figures drawn for one output folder (keys ``trajectory``, ``joint_angles``, ``error``; no
-    ``joint_angles`` for runs without joints) and the PNG each was saved to."""
+    ``joint_angles`` for runs without joints; ``joint_errors`` for runs with joint sigmas and
+    ground-truth joint angles) and the PNG each was saved to."""
 
     figures: dict[str, Figure]
     paths: dict[str, Path]
@@ -61,6 +68,7 @@ def vio_output_figures(
     ape_rmse = float(np.sqrt(np.mean(np.sum((aligned.p_est - aligned.p_gt) ** 2, axis=1))))
     scale = f" with scale {aligned.scale:.3f}" if align == "sim3" else ""
     name = f"{mode or 'estimate'}, {ALIGNMENT_NAMES[align]}{scale}, APE RMSE {ape_rmse:.3g} m"
+    joint_error_fig: Figure | None = None
     figures = {
         "trajectory": trajectory_topview_figure(
             aligned.p_gt, {name: aligned.p_est}, title=f"Trajectory, top view of the world frame ({mode or 'VIO'})"
@@ -72,10 +80,13 @@ def vio_output_figures(
         if theta.size:
             t0 = int(t_ns[0])
             t_est = (jt_ns - t0) / NS
+            est_name = mode or "estimate"
+            sigma = joint_sigmas(out_dir, jt_ns, theta.shape[1])
+            sigmas = {est_name: sigma} if sigma is not None else None
             if gt.joints is not None and gt.joint_t_ns is not None:
                 inside = (gt.joint_t_ns >= jt_ns[0]) & (gt.joint_t_ns <= jt_ns[-1])
                 fig = joint_angles_figure(
-                    (gt.joint_t_ns[inside] - t0) / NS, gt.joints[inside], {mode or "estimate": (t_est, theta)}
+                    (gt.joint_t_ns[inside] - t0) / NS, gt.joints[inside], {est_name: (t_est, theta)}, sigmas
                 )
                 for ax, rmse in zip(fig.axes, joint_rmse(jt_ns, theta, gt) or [], strict=False):
                     ax.text(
@@ -86,12 +97,44 @@ def vio_output_figures(
                         fontsize=8,
                         bbox={"facecolor": "white", "alpha": 0.8, "edgecolor": "none"},
                     )
+                if sigma is not None:
+                    err = theta - truth_at(jt_ns, gt.joint_t_ns, gt.joints)
+                    err_fig = joint_error_band_figure(t_est, err, sigma, est_name)
+                    err_fig.axes[-1].set_xlabel("time since the first keyframe (s)")
+                    joint_error_fig = err_fig
             else:
-                fig = joint_angles_figure(t_est, None, {mode or "estimate": theta})
+                fig = joint_angles_figure(t_est, None, {est_name: theta}, sigmas)
             fig.axes[-1].set_xlabel("time since the first keyframe (s)")
             figures["joint_angles"] = fig
     figures["error"] = error_over_distance_figure(aligned.p_gt, {name: aligned.p_est})
+    if joint_error_fig is not None:
+        figures["joint_errors"] = joint_error_fig
     return figures
+
+
+def joint_sigmas(out_dir: Path, stamps_ns: NDArray[np.int64], n_joints: int) -> NDArray[np.float64] | None:
+    """(N, L) per-keyframe joint-angle 1-sigma (rad, NaN where not reported) of the keyframes
+    ``stamps_ns`` from ``OUT/joint_angles_sigma.csv``, or None when the run wrote no such file (today's
+    ``dcc-fg vio`` does not: its result carries no joint-angle marginals)."""
+    path = out_dir / SIGMA_FILE
+    if not path.is_file():
+        return None
+    s_ns, sigma = read_joint_sigmas_csv(path)
+    return sigmas_at(stamps_ns, s_ns, sigma, n_joints)
+
+
+def truth_at(
+    stamps_ns: NDArray[np.int64], gt_t_ns: NDArray[np.int64], gt_joints: NDArray[np.float64]
+) -> NDArray[np.float64]:
+    """(N, L) ground-truth joint angles (rad) linearly interpolated at ``stamps_ns``; NaN outside the
+    ground truth's time span (no extrapolation)."""
+    t = np.asarray(stamps_ns, np.int64)
+    ref = np.asarray(gt_t_ns, np.int64)
+    dt = (t - ref[0]).astype(float)
+    dref = (ref - ref[0]).astype(float)  # relative to the first stamp: exact in float64 for epoch stamps
+    out = np.column_stack([np.interp(dt, dref, gt_joints[:, j]) for j in range(gt_joints.shape[1])])
+    out[(t < ref[0]) | (t > ref[-1])] = np.nan
+    return out
 
 
 def write_vio_figures(
