@@ -1,8 +1,9 @@
 """VIO figures on plain numpy arrays: top-view trajectories, joint angles over time, error over distance.
 
 Positions are (N, 3) (or (N, 2)) in metres in the ground truth's world frame W; the caller aligns
-the estimates (e.g. with evo's Umeyama alignment) and associates them in time. Joint angles are in
-radians and drawn in degrees; times in seconds.
+the estimates (e.g. with evo's Umeyama alignment) and associates them in time. Joint angles (and
+their optional per-keyframe 1-sigma, drawn as a shaded band) are in radians and drawn in degrees;
+times in seconds.
 """
 
 from __future__ import annotations
