@@ -13,13 +13,17 @@ RMSE. The clean run is scored the same way over the same span; the gap run must 
 
 from __future__ import annotations
 
+import dataclasses
 import logging
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
+from scipy.stats import chi2
 
 from dcc_fg.data.vio import ImuConfig, ImuSamples
+from dcc_fg.plots.joint_band import read_joint_sigmas_csv
 from dcc_fg.sim.trajectory import (
     FlightConfig,
     FlightTruth,
@@ -31,6 +35,7 @@ from dcc_fg.sim.trajectory import (
 )
 from dcc_fg.util.errors import EstimatorError
 from dcc_fg.vio.backend import InitialState, VioOptions, VioResult, run_vio
+from dcc_fg.vio.backend.outputs import write_vio_outputs
 from dcc_fg.vio.backend.runner import drop_implausible_imu
 from dcc_fg.vio.backend.window import FixedLagWindow
 from dcc_fg.vio.evaluate import GroundTruth, evaluate_trajectory
@@ -178,3 +183,27 @@ def test_a_window_restart_that_fails_falls_back_to_the_state_alone(
     calls.update(n=0, fail=2)
     with pytest.raises(EstimatorError, match=r"could not be restarted at keyframe \d+ .* even from its state alone"):
         f.run(gap_imu)
+
+
+def test_joint_sigmas_match_the_joint_errors(clean_run: dict[str, Any], tmp_path: Path) -> None:
+    """``joint_sigmas``: every keyframe gets its joint-angle 1-sigma from the window before it leaves; the
+    normalized errors against the simulator's truth are consistent (mean NEES inside the chi-square 95 %
+    interval of the flight's independent windows: errors one window apart are correlated, so the
+    duration / lag windows count, not the keyframes), and the sigmas reach joint_angles_sigma.csv, which
+    the figures read back."""
+    f: Flight = clean_run["flight"]
+    opts = dataclasses.replace(f.options, joint_sigmas=True)
+    res = run_vio(f.frames, f.truth.imu, f.imu_cfg, f.cal, opts, f.initial)
+    assert res.theta_sigma is not None and res.theta_sigma.shape == res.theta.shape
+    ok = np.all(np.isfinite(res.theta_sigma), axis=1)
+    assert ok.mean() > 0.95 and np.all(res.theta_sigma[ok] > 0)
+    err = res.theta - f.truth.theta[f.truth.index_of(res.timestamps_ns)]
+    nees = np.sum((err[ok] / res.theta_sigma[ok]) ** 2, axis=1)
+    L = err.shape[1]
+    n_windows = int(DURATION / opts.lag)
+    lo, hi = chi2.ppf([0.025, 0.975], L * n_windows) / n_windows
+    print(f"\njoint-angle NEES {nees.mean():.2f} (L = {L}; 95 % interval {lo:.2f}-{hi:.2f} for {n_windows} windows)")
+    assert lo <= nees.mean() <= hi
+    write_vio_outputs(tmp_path, res)
+    stamps, sigma = read_joint_sigmas_csv(tmp_path / "joint_angles_sigma.csv")
+    assert np.array_equal(stamps, res.timestamps_ns) and np.allclose(sigma, res.theta_sigma, rtol=1e-5, equal_nan=True)

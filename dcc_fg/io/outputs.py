@@ -63,6 +63,17 @@ def write_joint_angles_csv(path: Path, timestamps_ns: NDArray[np.int64], thetas:
     write_text_atomic(Path(path), buf.getvalue())
 
 
+def write_joint_sigmas_csv(path: Path, timestamps_ns: NDArray[np.int64], sigmas: NDArray[np.float64]) -> None:
+    """``timestamp_ns,sigma_theta_1,...,sigma_theta_L`` (1-sigma in radians, ``nan`` where unknown), one
+    row per keyframe, beside ``joint_angles.csv``."""
+    L = sigmas.shape[1] if sigmas.ndim == 2 else 0
+    buf = io.StringIO()
+    buf.write(",".join(["timestamp_ns"] + [f"sigma_theta_{j + 1}" for j in range(L)]) + "\n")
+    for t, sg in zip(timestamps_ns, sigmas, strict=True):
+        buf.write(",".join([str(int(t))] + [f"{x:.6g}" for x in sg]) + "\n")
+    write_text_atomic(Path(path), buf.getvalue())
+
+
 def read_joint_angles_csv(path: Path) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
     """Inverse of :func:`write_joint_angles_csv`: (N,) int64 stamps (ns, exact) and (N, L) angles (rad)."""
     path = Path(path)

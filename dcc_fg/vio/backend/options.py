@@ -52,6 +52,11 @@ class VioOptions:
     ``stamp_jitter`` = 1-sigma (s) of each
     camera's header stamps around its exposure times (None: measured from the stamps by
     :func:`~dcc_fg.vio.backend.runner.run_vio` and ``dcc-fg vio``).
+
+    ``joint_sigmas`` (``dcc``): every keyframe's joint-angle 1-sigma (rad) from the window's marginal
+    covariance of ``t(k)`` at the last update before the keyframe leaves the window (the estimate the
+    result keeps is from the same update), in ``VioResult.theta_sigma`` and ``joint_angles_sigma.csv``;
+    one marginal covariance per keyframe costs about as much as the update itself (off by default).
     """
 
     mode: str = "dcc"
@@ -100,6 +105,7 @@ class VioOptions:
     time_offset_prior_sigma: float = 0.01
     stamp_jitter: tuple[float, float] | None = None
     time_offset_freeze_sigma: float | None = None
+    joint_sigmas: bool = False
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -167,3 +173,6 @@ class VioResult:
     theta: FloatArray
     mode: str
     stats: dict[str, Any]
+    #: (N, L) 1-sigma of the joint angles (rad) from the window's marginal covariance just before each
+    #: keyframe left it (``joint_sigmas``; NaN where a keyframe left without one, e.g. at a restart), or None
+    theta_sigma: FloatArray | None = None

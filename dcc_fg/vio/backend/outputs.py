@@ -1,4 +1,5 @@
-"""Files of a VIO run: ``trajectory.tum`` (body/IMU frame ``T_WI``), ``joint_angles.csv`` and ``summary.json``."""
+"""Files of a VIO run: ``trajectory.tum`` (body/IMU frame ``T_WI``), ``joint_angles.csv`` (and with
+``joint_sigmas`` ``joint_angles_sigma.csv``) and ``summary.json``."""
 
 from __future__ import annotations
 
@@ -7,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-from dcc_fg.io.outputs import write_joint_angles_csv, write_json
+from dcc_fg.io.outputs import write_joint_angles_csv, write_joint_sigmas_csv, write_json
 from dcc_fg.io.tum import write_tum
 from dcc_fg.vio.backend.options import VioResult
 
@@ -35,6 +36,8 @@ def write_vio_outputs(out_dir: str | Path, result: VioResult, extra: dict[str, A
         write_tum(out / f"trajectory_segment_{k}.tum", result.timestamps_ns[sel], result.T_WI[sel])
     if result.mode != "mono" and result.theta.shape[1] > 0:
         write_joint_angles_csv(out / "joint_angles.csv", result.timestamps_ns, result.theta)
+        if result.theta_sigma is not None:
+            write_joint_sigmas_csv(out / "joint_angles_sigma.csv", result.timestamps_ns, result.theta_sigma)
     summary = {
         "mode": result.mode,
         "keyframes": int(result.timestamps_ns.size),

@@ -124,6 +124,7 @@ class VioSmoother:
         self.last_vision_ns: int | None = None
         self.longest_without_vision_ns = 0
         self.velocity_sigma: dict[int, float] = {}
+        self.theta_sigma: dict[int, FloatArray] = {}  # joint-angle 1-sigma per keyframe (joint_sigmas)
 
     # ------------------------------------------------------------------ helpers
     def _mounts(self) -> dict[int, CameraMount]:
@@ -667,6 +668,33 @@ class VioSmoother:
             )
         self._refresh()
         self.exposure.maybe_freeze(self.window.smoother, self.kf_times[self.k])
+        if error is None and self.opt.joint_sigmas and self.opt.mode == "dcc":
+            self._joint_sigmas(leaving_only=True)
+
+    def _joint_sigmas(self, leaving_only: bool) -> None:
+        """Joint-angle 1-sigma (rad) of the window's keyframes from its marginal covariances, each keyframe
+        once: those the next update may marginalize (older than the newest keyframe's time plus twice the
+        last keyframe interval minus the lag), or, with ``leaving_only`` False, every one left."""
+        k = self.k
+        t = self.kf_times[k]
+        dt = t - self.kf_times[k - 1] if k - 1 in self.kf_times else 0
+        cutoff = t + 2 * dt - int(self.opt.lag * NS)
+        est = self.window.estimate()
+        oldest = t - 2 * int(self.opt.lag * NS)  # older keyframes have left the window
+        for kk in range(k, -1, -1):
+            if kk not in self.kf_times:
+                continue
+            if self.kf_times[kk] < oldest:
+                break
+            if kk in self.theta_sigma or (leaving_only and self.kf_times[kk] >= cutoff):
+                continue
+            if not est.exists(theta_key(kk)):
+                continue
+            try:
+                cov = np.asarray(self.window.smoother.marginalCovariance(theta_key(kk)), float)
+            except RuntimeError:
+                continue
+            self.theta_sigma[kk] = np.sqrt(np.maximum(np.diag(cov), 0.0))
 
     def _refresh(self) -> None:
         """Estimates of the window's keyframes, the newest navigation state, bias, joint angles and
@@ -767,7 +795,10 @@ class VioSmoother:
             sigma = self._velocity_sigma(self.k)
             if sigma is not None:
                 self.velocity_sigma[self.k] = sigma
-        res = result_from_states(self.estimates, self.opt.mode, self.stats)
+        want_sigmas = self.opt.joint_sigmas and self.opt.mode == "dcc"
+        if want_sigmas and self.k >= 0:
+            self._joint_sigmas(leaving_only=False)
+        res = result_from_states(self.estimates, self.opt.mode, self.stats, self.theta_sigma if want_sigmas else None)
         res.stats.update(self.recovery_stats(res.timestamps_ns))
         res.stats["time_offsets"] = self.exposure.summary(self.window.smoother, gimbal=self.opt.mode != "mono")
         return res

@@ -56,9 +56,20 @@ class KeyframeState:
         return dataclasses.replace(self, theta=theta)
 
 
-def result_from_states(states: dict[int, KeyframeState], mode: str, stats: dict[str, Any]) -> VioResult:
-    """:class:`VioResult` of the keyframes in index order (``theta`` shaped (N, L), L may be 0)."""
-    ordered = [states[k] for k in sorted(states)]
+def result_from_states(
+    states: dict[int, KeyframeState],
+    mode: str,
+    stats: dict[str, Any],
+    theta_sigma: dict[int, FloatArray] | None = None,
+) -> VioResult:
+    """:class:`VioResult` of the keyframes in index order (``theta`` shaped (N, L), L may be 0); with
+    ``theta_sigma`` (keyframe -> joint-angle 1-sigma, rad) also ``theta_sigma`` (N, L), NaN where missing."""
+    keys = sorted(states)
+    ordered = [states[k] for k in keys]
+    sigma = None
+    if theta_sigma is not None:
+        L = ordered[0].theta.shape[0] if ordered else 0
+        sigma = np.array([theta_sigma.get(k, np.full(L, np.nan)) for k in keys], float).reshape(len(keys), L)
     return VioResult(
         timestamps_ns=np.array([s.t_ns for s in ordered], dtype=np.int64),
         T_WI=np.array([s.T_WI for s in ordered]),
@@ -68,4 +79,5 @@ def result_from_states(states: dict[int, KeyframeState], mode: str, stats: dict[
         theta=np.array([s.theta for s in ordered]).reshape(len(ordered), -1),
         mode=mode,
         stats=dict(stats),
+        theta_sigma=sigma,
     )
