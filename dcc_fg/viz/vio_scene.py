@@ -1,0 +1,112 @@
+"""What the interactive view shows of a VIO run, computed without any viewer (:mod:`dcc_fg.viz.rerun_log`).
+
+Frames as in ``docs/architecture.md``: ``W`` the estimate's world (gravity along -z, metres), ``I`` body
+(IMU), ``s`` static camera (``T_sI`` maps IMU points into s), the gimbal chain relative to s at each
+keyframe's estimated joint angles. The ground truth lives in its own world frame; it is brought into
+``W`` by the inverse of the alignment the evaluation uses (:func:`dcc_fg.vio.evaluate.align_trajectory`:
+SE(3), or Sim(3) for ``mono`` runs), so the estimate is shown as it was computed and the truth moves.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from dcc_fg.io.bags import bag_reader, is_bag
+from dcc_fg.vio.backend import VioResult
+from dcc_fg.vio.evaluate import NS, POSE_TOPIC, GroundTruth, align_trajectory, load_ground_truth
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+log = logging.getLogger(__name__)
+
+
+def bag_has_ground_truth(bag: str | Path) -> bool:
+    """True when ``bag`` is a ROS bag with the simulator's ground-truth pose topic (``/ground_truth/pose``)."""
+    path = Path(bag)
+    if not is_bag(path):
+        return False
+    try:
+        with bag_reader(path) as reader:
+            return any(c.topic == POSE_TOPIC for c in reader.connections)
+    except (ValueError, OSError):
+        return False
+
+
+def find_ground_truth(bag: str | Path, explicit: str | Path | None) -> GroundTruth | None:
+    """The ground truth to show: ``explicit`` (TUM file or bag, :func:`~dcc_fg.vio.evaluate.load_ground_truth`),
+    else the VIO bag's own ``/ground_truth/pose`` topic when it has one (simulated flights), else None."""
+    if explicit is not None:
+        return load_ground_truth(explicit)
+    if bag_has_ground_truth(bag):
+        log.info("rerun: showing the ground truth of %s (%s)", bag, POSE_TOPIC)
+        return load_ground_truth(bag)
+    return None
+
+
+@dataclass(frozen=True)
+class TruthInEstimateFrame:
+    """Ground truth brought into the estimate's world W at the keyframes it overlaps.
+
+    ``keyframes`` (N,) indices into the result's keyframes; ``T_WI`` (N, 4, 4) true body poses in W
+    (rotation and position, metres; for Sim(3) the positions are divided by the alignment's ``scale``);
+    ``theta`` (N, L) true joint angles (rad) interpolated to the keyframe times, or None; ``alignment``
+    ``se3`` or ``sim3``."""
+
+    keyframes: IntArray
+    T_WI: FloatArray
+    theta: FloatArray | None
+    alignment: str
+    scale: float
+
+
+def truth_in_estimate_frame(result: VioResult, gt: GroundTruth, max_diff_s: float = 0.01) -> TruthInEstimateFrame:
+    """The ground truth at the result's keyframes (associated within ``max_diff_s`` s), in W.
+
+    The evaluation aligns the estimate onto the truth, ``p_gt ~ s R p_W + t`` (s = 1 for SE(3)); here the
+    inverse is applied to the truth: ``R`` from the mean rotation difference of the associated poses, then
+    ``s, t`` by linear least squares on the positions.
+
+    Raises:
+        ValueError: the estimate and the truth do not overlap in time (from the association).
+    """
+    align = "sim3" if result.mode == "mono" else "se3"
+    aligned = align_trajectory(result.timestamps_ns, result.T_WI, gt, align, max_diff_s)
+    t_kf = result.timestamps_ns.astype(np.int64)
+    idx = np.abs(t_kf[None, :] - np.round(aligned.t_s * NS).astype(np.int64)[:, None]).argmin(axis=1)
+    R_est = result.T_WI[idx, :3, :3]
+    # aligned rotations are R @ R_est: the mean of R_aligned R_est^T, projected onto SO(3)
+    M = np.einsum("nij,nkj->ik", aligned.T_WI_est[:, :3, :3], R_est)
+    U, _, Vt = np.linalg.svd(M)
+    R = U @ np.diag([1.0, 1.0, float(np.sign(np.linalg.det(U @ Vt)))]) @ Vt
+    q = result.T_WI[idx, :3, 3] @ R.T
+    scale, t = 1.0, np.mean(aligned.p_est - q, axis=0)
+    if align == "sim3":
+        A = np.zeros((3 * len(idx), 4))
+        A[:, 0] = q.reshape(-1)
+        A[:, 1:] = np.tile(np.eye(3), (len(idx), 1))
+        sol, *_ = np.linalg.lstsq(A, aligned.p_est.reshape(-1), rcond=None)
+        scale, t = float(sol[0]), sol[1:]
+    T = np.repeat(np.eye(4)[None], len(idx), axis=0)
+    T[:, :3, :3] = np.einsum("ji,njk->nik", R, aligned.T_WI_gt[:, :3, :3])
+    T[:, :3, 3] = ((aligned.p_gt - t) @ R) / scale
+    theta = None
+    if gt.joints is not None and gt.joint_t_ns is not None and result.theta.size:
+        tq = t_kf[idx].astype(float)
+        jt = gt.joint_t_ns.astype(float)
+        theta = np.column_stack([np.interp(tq, jt, gt.joints[:, j]) for j in range(gt.joints.shape[1])])
+    return TruthInEstimateFrame(idx.astype(np.int64), T, theta, align, scale)
+
+
+def segment_slices(result: VioResult) -> list[slice]:
+    """Keyframe index ranges of the trajectory segments (one slice when the smoother never restarted);
+    poses of different segments are not in one frame, so each is drawn as its own line."""
+    t = result.timestamps_ns
+    starts = sorted({int(s["start_ns"]) for s in result.stats.get("segments") or []})
+    cuts = [int(np.searchsorted(t, s)) for s in starts if 0 < np.searchsorted(t, s) < len(t)]
+    bounds = [0, *sorted(set(cuts)), len(t)]
+    return [slice(a, b) for a, b in zip(bounds[:-1], bounds[1:], strict=True) if b > a]

@@ -1,0 +1,361 @@
+"""``--rerun FILE.rrd`` on calibrate, validate and vio (issue 17, item 2): the recording is read back with
+Rerun's own reader (``rerun.chunk.RrdReader``, rerun-sdk 0.41) and checked against the run's output files
+(entity paths, one row per snapshot / keyframe, joint angles, poses, residuals); without rerun-sdk the
+flag is refused before any work with what to install.
+
+Small inputs keep it fast (~20 s): a rendered 12-snapshot checkerboard set (image folder and ROS2 bag) and
+a rendered 8 s flight at half resolution.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import pyarrow as pa
+import pytest
+
+import dcc_fg.viz.rerun_log as rerun_log
+from dcc_fg import load_calibration
+from dcc_fg.calibrate import CalibrationOptions, calibrate
+from dcc_fg.cli import main
+from dcc_fg.io.outputs import read_joint_angles_csv
+from dcc_fg.io.tum import read_tum
+from dcc_fg.sim.calibration_scene import SceneConfig, simulate_calibration
+from dcc_fg.sim.flight_bag import FlightBag, write_flight
+from dcc_fg.sim.trajectory import FlightConfig
+from dcc_fg.sim.write_dataset import CalibrationSimSpec, RenderedCalibration, write_calibration_dataset
+from dcc_fg.vio.backend import VioResult
+from dcc_fg.vio.evaluate import GroundTruth
+from dcc_fg.viz import scene
+from dcc_fg.viz.images import nearest_within
+from dcc_fg.viz.vio_scene import segment_slices, truth_in_estimate_frame
+from factors import chain
+
+try:
+    from rerun.chunk import RrdReader
+except ImportError:
+    RrdReader = None
+
+needs_rerun = pytest.mark.skipif(
+    not rerun_log.RERUN_AVAILABLE or RrdReader is None,
+    reason="rerun-sdk (with rerun.chunk.RrdReader, >= 0.41) is not installed: pip install dcc-fg[viz]",
+)
+
+CALIBRATION_ENTITIES = {
+    "/world",
+    "/world/static_camera",
+    "/world/gimbal_base",
+    "/world/link_1",
+    "/world/end_effector",
+    "/world/gimbal_camera",
+    "/world/chain",
+    "/world/joint_axes",
+    "/world/target",
+    "/world/target/corners",
+    "/world/static_camera/image",
+    "/world/static_camera/image/detected",
+    "/world/static_camera/image/reprojected",
+    "/world/static_camera/image/border",
+    "/world/gimbal_camera/image",
+    "/world/gimbal_camera/image/detected",
+    "/world/gimbal_camera/image/reprojected",
+    "/joints/theta_1",
+    "/joints/theta_2",
+    "/joints/sigma_1",
+    "/residuals/static_rms_px",
+    "/residuals/gimbal_rms_px",
+}
+
+
+# ---------------------------------------------------------------------------------------------- reading a recording
+
+
+def _column(batch: pa.RecordBatch, name: str) -> list[Any]:
+    """A column as Python values; timestamps as integer ns (to_pylist would round them to microseconds)."""
+    col = batch.column(name)
+    if pa.types.is_timestamp(col.type):
+        col = col.cast(pa.int64())
+    return col.to_pylist()
+
+
+def load_rrd(path: Path) -> dict[str, dict[str, Any]]:
+    """``{entity path: {"static": {column: value}, "rows": [{column: value}, ...] sorted by time}}``."""
+    out: dict[str, dict[str, Any]] = {}
+    for chunk in RrdReader(path).stream():  # type: ignore[misc]
+        batch = chunk.to_record_batch()
+        entry = out.setdefault(chunk.entity_path, {"static": {}, "rows": []})
+        names = [n for n in batch.schema.names if not n.startswith("rerun.")]
+        cols = {n: _column(batch, n) for n in names}
+        for r in range(batch.num_rows):
+            row = {n: cols[n][r] for n in names}
+            if chunk.is_static:
+                entry["static"].update(row)
+            else:
+                entry["rows"].append(row)
+    for entry in out.values():
+        key = "snapshot" if any("snapshot" in r for r in entry["rows"]) else "time"
+        entry["rows"].sort(key=lambda r: (r.get(key) is None, r.get(key)))
+    return out
+
+
+def scalars(rec: dict[str, dict[str, Any]], entity: str) -> np.ndarray:
+    return np.array([r["Scalars:scalars"][0] for r in rec[entity]["rows"]])
+
+
+def pose(row: dict[str, Any]) -> np.ndarray:
+    """The 4x4 of a logged Transform3D row (Rerun stores mat3x3 column-major, in float32)."""
+    T = np.eye(4)
+    T[:3, :3] = np.array(row["Transform3D:mat3x3"][0]).reshape(3, 3).T
+    T[:3, 3] = row["Transform3D:translation"][0]
+    return T
+
+
+# ---------------------------------------------------------------------------------------------- calibration
+
+
+@pytest.fixture(scope="module")
+def rendered(tmp_path_factory: pytest.TempPathFactory) -> RenderedCalibration:
+    spec = CalibrationSimSpec("checkerboard", "folder", seed=5, n_snapshots=12)
+    return write_calibration_dataset(tmp_path_factory.mktemp("rendered"), spec)
+
+
+def _calibrate_argv(r: RenderedCalibration, data: Path, out: Path) -> list[str]:
+    files = ["--camchain", str(r.camchain), "--target", str(r.target), "--gimbal", str(r.gimbal)]
+    return ["calibrate", str(data), *files, "--out", str(out), "-q"]
+
+
+@pytest.fixture(scope="module")
+def calibrated(rendered: RenderedCalibration, tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
+    root = tmp_path_factory.mktemp("calibrated")
+    rrd = root / "rec" / "calibration.rrd"  # the folder is created
+    assert main([*_calibrate_argv(rendered, rendered.data, root / "cal"), "--rerun", str(rrd)]) == 0
+    return {"out": root / "cal", "rrd": rrd, "rec": load_rrd(rrd)}
+
+
+@needs_rerun
+def test_calibration_recording_matches_the_outputs(calibrated: dict[str, Any]) -> None:
+    rec, out = calibrated["rec"], calibrated["out"]
+    assert CALIBRATION_ENTITIES <= set(rec), sorted(CALIBRATION_ENTITIES - set(rec))
+    assert not calibrated["rrd"].with_name("calibration.rrd.partial").exists()
+    t_ns, theta = read_joint_angles_csv(out / "joint_angles.csv")
+    K = len(t_ns)
+    assert K == 12
+    for j in range(2):
+        rows = rec[f"/joints/theta_{j + 1}"]["rows"]
+        assert [r["snapshot"] for r in rows] == list(range(K))
+        assert [r["time"] for r in rows] == [int(x) for x in t_ns]
+        np.testing.assert_allclose(scalars(rec, f"/joints/theta_{j + 1}"), theta[:, j], atol=1e-9)
+    # every snapshot's images (the image folder has them) and corners; chain frames at the estimated angles
+    for name in ("static_camera", "gimbal_camera"):
+        rows = rec[f"/world/{name}/image"]["rows"]
+        assert [r["snapshot"] for r in rows] == list(range(K))
+        jpeg = np.frombuffer(bytes(rows[4]["EncodedImage:blob"][0]), dtype=np.uint8)
+        assert cv2.imdecode(jpeg, cv2.IMREAD_UNCHANGED).shape[:2] == (480, 640)
+        assert rec[f"/world/{name}/image"]["static"]["Pinhole:resolution"] == [[640.0, 480.0]]
+        assert len(rec[f"/world/{name}/image/detected"]["rows"]) == K
+    cal = load_calibration(out / "calibration.yaml")
+    for i in (0, 5, K - 1):
+        T_sd = chain.inv_se3(cal.T_ds(theta[i]))
+        np.testing.assert_allclose(pose(rec["/world/gimbal_camera"]["rows"][i]), T_sd, atol=2e-6)
+    # the residual RMS per snapshot pools to the run's own statistics (summary.json)
+    summary = json.loads((out / "summary.json").read_text())["reprojection_error_px"]
+    for name, cam in (("static", "static_camera"), ("gimbal", "gimbal_camera")):
+        n = np.array([len(r["Points2D:positions"]) for r in rec[f"/world/{cam}/image/detected"]["rows"]])
+        rms = scalars(rec, f"/residuals/{name}_rms_px")
+        pooled = float(np.sqrt(np.sum(n * rms**2) / np.sum(n)))
+        expected = summary["static" if name == "static" else "dynamic"]["rms_per_axis"]
+        assert pooled == pytest.approx(expected, rel=1e-6)
+        # the drawn reprojections are the model's: their distance to the detections is the residual
+        row_d = rec[f"/world/{cam}/image/detected"]["rows"][3]["Points2D:positions"]
+        row_r = rec[f"/world/{cam}/image/reprojected"]["rows"][3]["Points2D:positions"]
+        diff = np.array(row_r) - np.array(row_d)
+        assert float(np.sqrt(np.mean(diff**2))) == pytest.approx(rms[3], rel=1e-3, abs=1e-4)
+
+
+@needs_rerun
+def test_validation_recording(rendered: RenderedCalibration, calibrated: dict[str, Any], tmp_path: Path) -> None:
+    rrd = tmp_path / "validation.rrd"
+    argv = ["validate", str(rendered.data), "--calibration", str(calibrated["out"] / "calibration.yaml")]
+    argv += ["--target", str(rendered.target), "--out", str(tmp_path / "val"), "-q"]
+    assert main([*argv, "--rerun", str(rrd)]) == 0
+    rec = load_rrd(rrd)
+    t_ns, theta = read_joint_angles_csv(tmp_path / "val" / "joint_angles.csv")
+    assert CALIBRATION_ENTITIES <= set(rec)
+    np.testing.assert_allclose(scalars(rec, "/joints/theta_2"), theta[:, 1], atol=1e-9)
+    assert len(rec["/world/gimbal_camera/image"]["rows"]) == len(t_ns)
+
+
+@needs_rerun
+def test_calibration_from_a_bag_shows_its_images(tmp_path: Path) -> None:
+    """A ROS2 bag: the images are decoded again from the camchain's topics."""
+    r = write_calibration_dataset(tmp_path / "sim", CalibrationSimSpec("checkerboard", "ros2", seed=3, n_snapshots=8))
+    rrd = tmp_path / "bag.rrd"
+    assert main([*_calibrate_argv(r, r.data, tmp_path / "cal"), "--rerun", str(rrd)]) == 0
+    rec = load_rrd(rrd)
+    t_ns, _ = read_joint_angles_csv(tmp_path / "cal" / "joint_angles.csv")
+    for name in ("static_camera", "gimbal_camera"):
+        rows = rec[f"/world/{name}/image"]["rows"]
+        assert [r["time"] for r in rows] == [int(x) for x in t_ns]
+
+
+def test_reprojected_corners_are_the_residuals() -> None:
+    """scene.snapshot_corners reproduces the calibration's own residuals h(x) - z, corner by corner."""
+    sim = simulate_calibration(1, SceneConfig(n_calibration=6, n_validation=1))
+    result = calibrate(sim.calibration_set, sim.initial, CalibrationOptions())
+    for i in (0, 3):
+        static, gimbal = scene.snapshot_corners(sim.calibration_set, result, i)
+        np.testing.assert_allclose(static.reprojected - static.detected, result.residuals_static[i], atol=1e-6)
+        np.testing.assert_allclose(gimbal.reprojected - gimbal.detected, result.residuals_dynamic[i], atol=1e-6)
+    names = list(scene.chain_poses(result.calibration, result.joint_angles[0]))
+    assert names == ["static_camera", "gimbal_base", "link_1", "end_effector", "gimbal_camera"]
+
+
+def test_nearest_within() -> None:
+    available = np.array([10, 20, 30], dtype=np.int64)
+    wanted = np.array([9, 14, 16, 26, 31, 100], dtype=np.int64)
+    assert nearest_within(available, wanted, 4).tolist() == [0, 0, 1, 2, 2, -1]
+    assert nearest_within(np.zeros(0, dtype=np.int64), wanted, 4).tolist() == [-1] * 6
+
+
+# ---------------------------------------------------------------------------------------------- VIO
+
+
+@pytest.fixture(scope="module")
+def flight(tmp_path_factory: pytest.TempPathFactory) -> FlightBag:
+    return write_flight(tmp_path_factory.mktemp("flight") / "f", "ros2", FlightConfig.short(8.0), seed=0, scale=0.5)
+
+
+@needs_rerun
+def test_vio_recording_matches_the_outputs(flight: FlightBag, tmp_path: Path) -> None:
+    rrd, out = tmp_path / "vio.rrd", tmp_path / "run"
+    argv = ["vio", str(flight.bag), "--calibration", str(flight.calibration), "--out", str(out), "-q"]
+    assert main([*argv, "--frontend", "inline", "--rerun", str(rrd)]) == 0
+    rec = load_rrd(rrd)
+    expected = {
+        "/world",
+        "/world/body",
+        "/world/body/static_camera",
+        "/world/body/static_camera/image",
+        "/world/body/static_camera/gimbal_camera",
+        "/world/body/static_camera/gimbal_base",
+        "/world/trajectory/estimate",
+        "/world/trajectory/truth",  # the simulated bag carries /ground_truth/pose
+        "/world/truth_body",
+        "/joints/estimate/theta_1",
+        "/joints/estimate/theta_2",
+        "/joints/truth/theta_1",
+        "/motion/speed_m_s",
+        "/imu/acc_bias/x",
+        "/imu/gyro_bias/z",
+        "/events",
+    }
+    assert expected <= set(rec), sorted(expected - set(rec))
+    t_tum, T_tum = read_tum(out / "trajectory.tum")
+    K = len(t_tum)
+    body = rec["/world/body"]["rows"]
+    assert len(body) == K and [r["keyframe"] for r in body] == list(range(K))
+    assert [r["time"] for r in body] == [int(x) for x in t_tum]
+    for k in (0, K // 2, K - 1):
+        np.testing.assert_allclose(pose(body[k]), T_tum[k], atol=1e-5)
+    t_j, theta = read_joint_angles_csv(out / "joint_angles.csv")
+    np.testing.assert_array_equal(t_j, t_tum)
+    for j in range(2):
+        np.testing.assert_allclose(scalars(rec, f"/joints/estimate/theta_{j + 1}"), theta[:, j], atol=1e-9)
+        truth = rec[f"/joints/truth/theta_{j + 1}"]["rows"]
+        kf = [r["keyframe"] for r in truth]
+        err = scalars(rec, f"/joints/truth/theta_{j + 1}") - theta[kf, j]
+        assert len(kf) >= K - 2 and np.sqrt(np.mean(err**2)) < 1e-2  # the estimate follows the truth
+    gimbal = rec["/world/body/static_camera/gimbal_camera"]["rows"]
+    assert len(gimbal) == K
+    # the truth, brought into the estimate's world, lies along the estimate (a healthy run: < 1 % of 40 m)
+    truth_p = np.array(rec["/world/trajectory/truth"]["static"]["LineStrips3D:strips"][0])
+    est_p = np.concatenate([np.array(s) for s in rec["/world/trajectory/estimate"]["static"]["LineStrips3D:strips"]])
+    assert np.abs(truth_p[0] - est_p[0]).max() < 0.5 and len(truth_p) >= K - 2
+
+
+def _truth_case(mode: str, scale: float) -> tuple[VioResult, GroundTruth, np.ndarray]:
+    rng = np.random.default_rng(1)
+    n = 30
+    t = 1_000_000_000 + np.arange(n, dtype=np.int64) * 50_000_000
+    T = np.repeat(np.eye(4)[None], n, axis=0)
+    T[:, :3, 3] = np.cumsum(rng.normal(size=(n, 3)), axis=0)
+    for k in range(n):
+        T[k, :3, :3] = chain.rot_z(0.1 * k) @ chain.rot_x(0.05 * k)
+    S = chain.se3_from_tau(np.array([0.1, -0.2, 0.7, 3.0, -1.0, 2.0]))
+    gt_T = np.einsum("ij,njk->nik", S, T)
+    gt_T[:, :3, 3] = scale * (T[:, :3, 3] @ S[:3, :3].T) + S[:3, 3]
+    theta = np.zeros((n, 0))
+    zeros = np.zeros((n, 3))
+    result = VioResult(t, T, zeros, zeros, zeros, theta, mode, {"segments": [{"start_ns": int(t[0])}]})
+    return result, GroundTruth(t, gt_T), T
+
+
+@pytest.mark.parametrize(("mode", "scale"), [("dcc", 1.0), ("mono", 2.5)])
+def test_truth_is_brought_into_the_estimate_frame(mode: str, scale: float) -> None:
+    result, gt, T = _truth_case(mode, scale)
+    truth = truth_in_estimate_frame(result, gt)
+    assert truth.alignment == ("sim3" if mode == "mono" else "se3") and truth.scale == pytest.approx(scale)
+    np.testing.assert_allclose(truth.T_WI, T[truth.keyframes], atol=1e-8)
+
+
+def test_segment_slices() -> None:
+    result, _, _ = _truth_case("dcc", 1.0)
+    assert segment_slices(result) == [slice(0, 30)]
+    result.stats["segments"] = [{"start_ns": int(result.timestamps_ns[0])}, {"start_ns": int(result.timestamps_ns[12])}]
+    assert segment_slices(result) == [slice(0, 12), slice(12, 30)]
+
+
+# ---------------------------------------------------------------------------------------------- refusals
+
+
+def test_missing_rerun_is_refused_before_any_work(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Without rerun-sdk, --rerun / --rerun-spawn fail first (the inputs do not even exist) and say what to
+    install; nothing is written."""
+    monkeypatch.setattr(rerun_log, "RERUN_AVAILABLE", False)
+    out = tmp_path / "out"
+    missing = str(tmp_path / "missing")
+    cases = [
+        ["calibrate", missing, "--joints", "2", "--out", str(out), "--rerun", str(tmp_path / "a.rrd")],
+        ["validate", missing, "--calibration", missing, "--out", str(out), "--rerun-spawn"],
+        ["vio", missing, "--calibration", missing, "--out", str(out), "--rerun", str(tmp_path / "a.rrd")],
+    ]
+    for argv in cases:
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        assert "pip install dcc-fg[viz]" in err and "not installed" in err, err
+        assert "missing" not in err  # refused before the inputs were looked at
+    assert not out.exists() and not (tmp_path / "a.rrd").exists()
+
+
+def test_without_rerun_sdk_installed(tmp_path: Path) -> None:
+    """With rerun not importable at all, dcc_fg imports, records the absence and refuses --rerun."""
+    code = (
+        "import sys; sys.modules['rerun'] = None; sys.modules['rerun.blueprint'] = None\n"
+        "import dcc_fg.viz.rerun_log as r; from dcc_fg.cli import main\n"
+        f"rc = main(['calibrate', {str(tmp_path / 'missing')!r}, '--joints', '2', '--rerun', 'a.rrd'])\n"
+        "print('available', r.RERUN_AVAILABLE, 'rc', rc)\n"
+    )
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=tmp_path, timeout=120)
+    assert "available False rc 2" in proc.stdout, proc.stdout + proc.stderr
+    assert "pip install dcc-fg[viz]" in proc.stderr
+
+
+@needs_rerun
+def test_bad_recording_requests(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    missing = str(tmp_path / "missing")
+    assert main(["calibrate", missing, "--joints", "2", "--out", str(tmp_path / "o"), "--rerun", "rec.txt"]) == 2
+    assert "must end in .rrd" in capsys.readouterr().err
+    (tmp_path / "dir.rrd").mkdir()
+    assert main(["calibrate", missing, "--joints", "2", "--rerun", str(tmp_path / "dir.rrd")]) == 2
+    assert "is a folder" in capsys.readouterr().err
+    argv = ["vio", missing, "--calibration", missing, "--out", str(tmp_path / "o"), "--rerun-ground-truth", missing]
+    assert main(argv) == 2
+    assert "--rerun-ground-truth" in capsys.readouterr().err
