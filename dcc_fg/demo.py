@@ -124,6 +124,7 @@ def write_demo_figures(out_dir: Path, runs: DemoRuns, summary: dict[str, Any], r
         truth=sim.truth,
         thetas_true=sim.joints_calibration,
         target_points=sim.calibration_set.target_points,
+        data=sim.calibration_set,
     )
 
 

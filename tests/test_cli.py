@@ -27,7 +27,7 @@ def test_demo_writes_outputs(tmp_path, capsys) -> None:
     gt = summary["ground_truth_errors"]
     assert set(gt) == {"bundle", "two_way"}
     assert summary["calibration"]["reprojection_error_px"]["all"]["count"] == 81 * 63 * 2
-    assert len(list(out.glob("calibration_*.png"))) == 5  # the demo saves its calibration figures
+    assert len(list(out.glob("calibration_*.png"))) == 6  # the demo saves its calibration figures
     assert summary["dcc_fg_version"] and summary["command"] == "demo" and summary["options"]["joints"] == 2
 
 

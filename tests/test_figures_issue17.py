@@ -5,7 +5,7 @@
   corners at the image border, the figure's artists and the report text.
 * The heat map of a real calibration result with its dataset: written as ``calibration_residual_map.png``
   and a PDF page by :func:`dcc_fg.plots.write_calibration_outputs`, and by a ``dcc-fg calibrate`` /
-  ``validate --report`` run once the command passes its dataset (xfail until then).
+  ``validate --report`` run.
 * The band of :mod:`dcc_fg.plots.joint_band`: the shaded polygon's limits are ``theta +- sigma`` (deg),
   nothing where no sigma exists, the sigma file, and the VIO output figures with a sigma file.
 """
@@ -266,11 +266,6 @@ def test_calibrate_and_validate_cli_write_the_heat_map(
     assert main(["validate", str(data), *common, "--calibration", str(files["calibration"]), "--out", str(val)]) == 0
     for out in (cal, val):
         assert (out / "report.pdf").is_file() and (out / "calibration_residuals.png").is_file()
-    if not (cal / "calibration_residual_map.png").exists():
-        pytest.xfail(
-            "dcc_fg/commands/calibrate.py write_report does not pass its dataset yet: "
-            "write_calibration_outputs(out, result, text, target_points=data.target_points, data=data)"
-        )
     for out in (cal, val):
         assert (out / "calibration_residual_map.png").is_file() and _pdf_pages(out / "report.pdf") >= 1 + 6
 

@@ -38,6 +38,7 @@ from dcc_fg.sources.dataset import load_dataset, load_streams
 from dcc_fg.sync import SyncOptions
 from dcc_fg.time_offset import MAX_SNAPSHOTS, calibrate_streams
 from dcc_fg.util.config import ConfigError
+from dcc_fg.util.parallel import resolve_jobs
 from dcc_fg.util.provenance import run_record
 from dcc_fg.viz.images import DYNAMIC_DIR, STATIC_DIR, ImageSource
 from dcc_fg.viz.rerun_log import RerunOptions, record_calibration
@@ -66,7 +67,8 @@ class ReaderOptions:
     time (:mod:`dcc_fg.sync`; unsynchronized cameras, continuous motion), with the inter-camera offset
     ``t_d - t_s`` from ``time_offsets`` (T_S, T_D in s, ``t_imu = t_stamp + t_offset``) estimated
     around them (:mod:`dcc_fg.time_offset`) unless ``fix_time_offsets``; at most ``max_snapshots``
-    gimbal frames, evenly spaced, are used.
+    gimbal frames, evenly spaced, are used. ``jobs``: processes detecting the target (0: every usable
+    core; 1: this process only; the same corners either way, :mod:`dcc_fg.sources.parallel_detection`).
     """
 
     sync_tolerance_ms: float = 5.0
@@ -76,8 +78,10 @@ class ReaderOptions:
     time_offsets: tuple[float, float] | None = None
     fix_time_offsets: bool = False
     max_snapshots: int = MAX_SNAPSHOTS
+    jobs: int = 0
 
     def __post_init__(self) -> None:
+        resolve_jobs(self.jobs)  # >= 0
         if self.corners not in ("all", "common"):
             raise ValueError(f"corners must be all or common, got {self.corners!r}")
         if self.sync not in ("tolerance", "interpolate"):
@@ -196,6 +200,7 @@ def load_calibration_data(
         min_common_points=reader.min_common_points,
         progress=progress,
         report=report,
+        jobs=resolve_jobs(reader.jobs),
     )
     return common_corners(dataset) if reader.corners == "common" else dataset
 
@@ -274,7 +279,7 @@ def write_calibration_files(
 def write_report(out: Path, result: CalibrationResult, data: CalibrationDataset) -> list[Path]:
     """The calibration figures as ``OUT/calibration_*.png`` and ``OUT/report.pdf``; the paths written."""
     text = run_summary_table(result.calibration.statistics) + "\n\n" + parameter_table(result.calibration)
-    return write_calibration_outputs(out, result, text, target_points=data.target_points)
+    return write_calibration_outputs(out, result, text, target_points=data.target_points, data=data)
 
 
 def write_calibration_set(
@@ -347,7 +352,9 @@ def calibrate_unsynchronized(
     if initial is None and config.init.joints is None:
         raise ValueError("--joints L is required when no --gimbal G.yaml is given (automatic initialization)")
     n_joints = initial.n_joints if initial is not None else int(config.init.joints)  # type: ignore[arg-type]
-    streams = load_streams(inputs.data, inputs.camchain, inputs.target, progress=progress)
+    streams = load_streams(
+        inputs.data, inputs.camchain, inputs.target, progress=progress, jobs=resolve_jobs(reader.jobs)
+    )
     t_s, t_d = reader.time_offsets if reader.time_offsets is not None else (0.0, 0.0)
     out = calibrate_streams(
         streams.static,
@@ -486,6 +493,8 @@ def add_reader_flags(p: argparse.ArgumentParser) -> None:
         help="use --time-offsets as given instead of estimating the inter-camera offset")  # fmt: skip
     opt(p, "--max-snapshots", "reader.max_snapshots", type=int, metavar="N", help="--sync interpolate: use at most "
         f"N gimbal frames, evenly spaced in time (default {MAX_SNAPSHOTS})")  # fmt: skip
+    opt(p, "--jobs", "reader.jobs", type=int, metavar="N", help="processes detecting the target in the images "
+        "(default 0: every usable core; 1: this process only); the same corners either way")  # fmt: skip
     opt(p, "--min-common-points", "reader.min_common_points", type=int, metavar="N",
         help="use a snapshot only if both cameras see at least N of the same target corners (default 8)")  # fmt: skip
     opt(p, "--corners", "reader.corners", choices=["all", "common"], help="all: every detected corner of each camera "
