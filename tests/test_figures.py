@@ -248,7 +248,7 @@ def test_calibrate_cli_report(tmp_path: Path, capsys: pytest.CaptureFixture[str]
     out = tmp_path / "out"
     assert main(["calibrate", str(r.data), *files, "--gimbal", str(r.gimbal), "--out", str(out), "--report"]) == 0
     assert "report.pdf" in capsys.readouterr().out
-    assert (out / "calibration.yaml").exists() and _pdf_pages(out / "report.pdf") == 1 + 5
+    assert (out / "calibration.yaml").exists() and _pdf_pages(out / "report.pdf") == 1 + 6
     assert sorted(p.name for p in out.glob("calibration_*.png")) == sorted(
         f"calibration_{n}.png"
         for n in ("residuals", "snapshot_errors", "coverage", "parameters", "chain", "residual_map")
@@ -261,7 +261,7 @@ def test_calibrate_cli_report(tmp_path: Path, capsys: pytest.CaptureFixture[str]
     assert main([*argv, "--out", str(val)]) == 0
     assert not list(val.glob("*.png")) and not (val / "report.pdf").exists()
     assert main([*argv, "--out", str(val), "--report"]) == 0
-    assert _pdf_pages(val / "report.pdf") == 1 + 5 and capsys.readouterr().out == ""
+    assert _pdf_pages(val / "report.pdf") == 1 + 6 and capsys.readouterr().out == ""
 
 
 def test_figures_on_real_euroc_stereo_pair() -> None:
