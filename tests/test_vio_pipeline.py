@@ -26,7 +26,7 @@ from dcc_fg.sim.trajectory import FlightConfig, locked_gimbal
 from dcc_fg.studies.vio_study import slew_recovery_errors
 from dcc_fg.vio.backend import VioOptions
 from dcc_fg.vio.evaluate import evaluate_output, evaluate_trajectory, joint_rmse, load_ground_truth
-from dcc_fg.vio.pipeline import run_vio_bag
+from dcc_fg.vio.pipeline import FrameEvent, run_vio_bag
 
 pytestmark = pytest.mark.slow  # renders two 20 s flights and runs the whole VIO on them (~2-3 min)
 
@@ -49,14 +49,16 @@ def dcc(flights: dict[str, FlightBag]) -> dict[str, Any]:
     fb = flights["moving"]
     cal, imu = load_flight_calibration(fb.calibration)
     focal = float(cal.static_camera.intrinsics[0])  # type: ignore[union-attr]
-    res, run = run_vio_bag(fb.bag, cal, imu, VioOptions(mode="dcc", sigma=1.0 / focal, keyframe_every=3))
+    events: list[FrameEvent] = []
+    opts = VioOptions(mode="dcc", sigma=1.0 / focal, keyframe_every=3)
+    res, run = run_vio_bag(fb.bag, cal, imu, opts, observer=events.append)
     gt = load_ground_truth(fb.bag)
     ev = evaluate_trajectory(res.timestamps_ns, res.T_WI, gt, "se3")
     ev["joint_rmse_rad"] = joint_rmse(res.timestamps_ns, res.theta, gt)
     # slew_recovery_errors works on simulation times: undo the bag's time offset
     t0 = int(gt.t_ns[0]) - int(fb.truth.t_ns[0])
     res.timestamps_ns = res.timestamps_ns - t0
-    return {**ev, "result": res, "truth": fb.truth, "run": run}
+    return {**ev, "result": res, "truth": fb.truth, "run": run, "events": events}
 
 
 @pytest.fixture(scope="module")
@@ -95,6 +97,22 @@ def test_dcc_joint_angles_and_slews(dcc: dict[str, Any]) -> None:
     # the first frame's static/gimbal matches put the start within 1e-2 rad without any guess
     assert np.max(np.abs(np.asarray(init["theta_rad"]) - truth.theta[0])) < 1e-2
     assert len(after) >= 3 and max(after) < 1e-2
+
+
+def test_observer_sees_every_frame(dcc: dict[str, Any]) -> None:
+    """``run_vio_bag(observer=...)``: one event per processed frame in order; the keyframe events are the
+    result's keyframes, with a pose, joint angles and the window's landmarks; stage-two rejections are
+    gimbal tracks of that frame."""
+    events: list[FrameEvent] = dcc["events"]
+    res = dcc["result"]
+    assert len(events) == res.stats["frames"] > 0
+    assert [e.index for e in events] == sorted(e.index for e in events)
+    kf = [e for e in events if e.keyframe]
+    assert len(kf) == res.timestamps_ns.size
+    assert all(e.T_WI is not None and e.theta is not None and e.landmarks is not None for e in kf)
+    assert np.median([len(e.landmarks) for e in kf]) > 20  # type: ignore[arg-type]
+    rejected = [e for e in events if e.rejected_ids.size]
+    assert all(np.isin(e.rejected_ids, e.frame.dynamic_ids).all() for e in rejected)
 
 
 def test_scc_outputs(scc: dict[str, Any]) -> None:

@@ -175,17 +175,22 @@ class SmootherDriver:
         self.t_start_data = 0
         self.t_prev = 0
         self.kf_prev: tuple[int, FloatArray] | None = None  # last keyframe's time and joint angles (dcc)
+        self.rejected = np.zeros(0, np.int64)  # gimbal track ids stage two rejected after the last frame
 
-    def feed(self, item: Tracked) -> None:
-        """Process one tracked frame."""
+    def feed(self, item: Tracked) -> bool:
+        """Process one tracked frame; True if it became a keyframe (the first frame does)."""
         frame, t = item.frame, item.frame.timestamp_ns
+        self.rejected = np.zeros(0, np.int64)
+        keyframe = True
         if self.smoother is None:
             self._start(frame)
         else:
             measurement = _theta_measurement(self.smoother, self.cal, frame, self.kf_prev)
-            if self.smoother.add_frame(frame, measurement) and self.options.mode == "dcc":
+            keyframe = self.smoother.add_frame(frame, measurement)
+            if keyframe and self.options.mode == "dcc":
                 self._keyframe_added(item)
         self.t_prev = t
+        return keyframe
 
     def _start(self, frame: TrackFrame) -> None:
         """Initialize the smoother at the first frame."""
@@ -220,8 +225,37 @@ class SmootherDriver:
             hint = GimbalHint(self.cal.T_ds(theta_k0 + w * (theta_k - theta_k0)), self.cal.T_ds(theta_k))
             assert self.cal.dynamic_camera is not None
             bad = gimbal_outliers(item.snapshot, hint, self.cal.dynamic_camera, self.fe_config)
-            self.worker.drop(item.snapshot.ids[bad])
+            self.rejected = np.asarray(item.snapshot.ids[bad], np.int64)
+            self.worker.drop(self.rejected)
         self.kf_prev = (t, theta_k)
+
+
+@dataclass(frozen=True)
+class FrameEvent:
+    """What the pipeline did with one frame, for an observer of :func:`run_vio_bag` (e.g. a Rerun
+    recording): the front end's tracks (normalized image coordinates of each camera, ids shared by the
+    static <-> gimbal matches), whether the frame became a keyframe, the gimbal track ids rejected by
+    stage two after it, and at a keyframe the body pose ``T_WI`` (4x4, I -> W), the joint angles (rad)
+    and the window's landmarks (track id -> point in W, m)."""
+
+    index: int
+    frame: TrackFrame
+    keyframe: bool
+    rejected_ids: NDArray[np.int64]
+    T_WI: NDArray[np.float64] | None = None
+    theta: NDArray[np.float64] | None = None
+    landmarks: dict[int, NDArray[np.float64]] | None = None
+
+
+def frame_event(item: Tracked, smoother: VioSmoother | None, keyframe: bool, rejected: NDArray[np.int64]) -> FrameEvent:
+    """The :class:`FrameEvent` of ``item`` after the smoother took it."""
+    if smoother is None or not keyframe:
+        return FrameEvent(item.index, item.frame, keyframe, rejected)
+    lms = smoother.landmarks
+    points = {int(tid): np.asarray(lms.position[lm], float) for tid, lm in lms.active.items() if lm in lms.position}
+    T = np.asarray(smoother.state.pose().matrix(), float)
+    theta = np.asarray(smoother.theta, float).copy()
+    return FrameEvent(item.index, item.frame, True, rejected, T, theta, points)
 
 
 def frontend_spec(
@@ -298,6 +332,7 @@ def run_vio_bag(
     pipeline: PipelineOptions | None = None,
     initial: InitialState | None = None,
     progress: Callable[[int, int, float, float], None] | None = None,
+    observer: Callable[[FrameEvent], None] | None = None,
 ) -> tuple[VioResult, dict[str, Any]]:
     """Run the VIO over a ROS1/ROS2 bag (module docstring).
 
@@ -313,6 +348,8 @@ def run_vio_bag(
             initialization from the first ``options.standstill_window`` seconds of IMU.
         progress: called after each frame with (frames done, frames total, seconds elapsed, seconds of
             data processed).
+        observer: called after each frame with its :class:`FrameEvent` (tracks, keyframe, rejections,
+            and at keyframes the pose, joint angles and landmarks).
 
     Returns:
         the smoother's result (per keyframe) and run statistics (front end, timing, gaps).
@@ -345,7 +382,9 @@ def run_vio_bag(
     n_total = len(vb)
     try:
         for item in worker:
-            driver.feed(item)
+            keyframe = driver.feed(item)
+            if observer is not None:
+                observer(frame_event(item, driver.smoother, keyframe, driver.rejected))
             if progress is not None:
                 data_s = (item.frame.timestamp_ns - driver.t_start_data) / NS
                 progress(item.index + 1, n_total, time.perf_counter() - t_wall, data_s)
