@@ -40,6 +40,7 @@ from dcc_fg.data.vio import ImuConfig, ImuSamples, TrackFrame
 from dcc_fg.model import GimbalCalibration
 from dcc_fg.sources.vio_bag import VioBag
 from dcc_fg.vio.backend import NS, InitialState, VioOptions, VioResult, VioSmoother, timing_stats
+from dcc_fg.vio.backend.motion_init import StartSelector, start_sigmas
 from dcc_fg.vio.frontend import FrontendConfig, GimbalHint, gimbal_outliers
 from dcc_fg.vio.joint_init import JointFit, fit_joint_angles
 from dcc_fg.vio.worker import FrontendWorker, Tracked, WorkerSpec, resolve_mode
@@ -176,36 +177,72 @@ class SmootherDriver:
         self.t_prev = 0
         self.kf_prev: tuple[int, FloatArray] | None = None  # last keyframe's time and joint angles (dcc)
         self.rejected = np.zeros(0, np.int64)  # gimbal track ids stage two rejected after the last frame
+        self.pending: list[Tracked] = []  # frames waiting for the start decision
+        self.selector = StartSelector(imu, imu_config, options)
+        self.start: dict[str, str] = {"how": "standstill", "detail": ""}
 
-    def feed(self, item: Tracked) -> bool:
-        """Process one tracked frame; True if it became a keyframe (the first frame does)."""
-        frame, t = item.frame, item.frame.timestamp_ns
-        self.rejected = np.zeros(0, np.int64)
-        keyframe = True
+    def feed(self, item: Tracked) -> list[tuple[Tracked, bool]]:
+        """Process one tracked frame; returns the frames the smoother took in this call, each with
+        whether it became a keyframe: none while the start is being decided (the frames wait), then
+        the waiting ones and this one (:mod:`~dcc_fg.vio.backend.motion_init`)."""
         if self.smoother is None:
-            self._start(frame)
-        else:
-            measurement = _theta_measurement(self.smoother, self.cal, frame, self.kf_prev)
-            keyframe = self.smoother.add_frame(frame, measurement)
-            if keyframe and self.options.mode == "dcc":
-                self._keyframe_added(item)
-        self.t_prev = t
+            if not self.pending and self.options.mode == "dcc":
+                self._first_frame_joints(item.frame)
+            self.pending.append(item)
+            state = None
+            if self.initial is None and self.options.initialization != "standstill":
+                state = self.selector.push(item.frame)
+                if state is None:
+                    return []
+                self.start = {"how": self.selector.how, "detail": self.selector.detail}
+                log.info("VIO start: %s (%s)", self.selector.how, self.selector.detail)
+            return self._start_with(state)
+        return [(item, self._take(item))]
+
+    def finish(self) -> list[tuple[Tracked, bool]]:
+        """At the end of the data: frames still waiting for the start decision start from standstill
+        (which refuses a body that is not at rest)."""
+        return self._start_with(None) if self.smoother is None and self.pending else []
+
+    def _start_with(self, state: InitialState | None) -> list[tuple[Tracked, bool]]:
+        first, rest = self.pending[0], self.pending[1:]
+        self.pending = []
+        self._start(first.frame, state)
+        self.t_prev = first.frame.timestamp_ns
+        return [(first, True)] + [(it, self._take(it)) for it in rest]
+
+    def _take(self, item: Tracked) -> bool:
+        """The smoother takes one frame; True if it became a keyframe."""
+        assert self.smoother is not None
+        frame = item.frame
+        self.rejected = np.zeros(0, np.int64)
+        measurement = _theta_measurement(self.smoother, self.cal, frame, self.kf_prev)
+        keyframe = self.smoother.add_frame(frame, measurement)
+        if keyframe and self.options.mode == "dcc":
+            self._keyframe_added(item)
+        self.t_prev = frame.timestamp_ns
         return keyframe
 
-    def _start(self, frame: TrackFrame) -> None:
-        """Initialize the smoother at the first frame."""
+    def _first_frame_joints(self, frame: TrackFrame) -> None:
+        """dcc: the joint angles at the first frame from its static <-> gimbal pairs."""
+        self.joint_fit = _initial_joint_angles(self.cal, frame, self.guess, self.pipeline.fit_initial_joints)
+        self.theta0 = self.joint_fit.theta
+        self.options = dataclasses.replace(self.options, theta_initial=tuple(float(x) for x in self.theta0))
+
+    def _start(self, frame: TrackFrame, state: InitialState | None) -> None:
+        """Initialize the smoother at the first frame: from the given initial state, the start the
+        selector chose (``state``), or standstill."""
         t = frame.timestamp_ns
         mono = self.options.mode == "mono"
-        if self.options.mode == "dcc":
-            self.joint_fit = _initial_joint_angles(self.cal, frame, self.guess, self.pipeline.fit_initial_joints)
-            self.theta0 = self.joint_fit.theta
-            theta_initial = tuple(float(x) for x in self.theta0)
-            self.options = dataclasses.replace(self.options, theta_initial=theta_initial)
         start = self.initial
         if start is not None:
             start = InitialState(t, start.T_WI, start.v_W, start.acc_bias, start.gyro_bias, self.theta0)
+            self.start = {"how": "given", "detail": "initial state given"}
+        elif state is not None:
+            start = InitialState(t, state.T_WI, state.v_W, state.acc_bias, state.gyro_bias, np.zeros(0))
         self.smoother = VioSmoother(self.imu, self.imu_config, None if mono else self.cal, self.options)
-        self.smoother.initialize(frame, start)
+        self.smoother.initialize(frame, start, start_sigmas(self.selector, self.options))
+        self.smoother.stats["start"] = self.start
         self.t_start_data = t
         if self.options.mode == "dcc":
             self.kf_prev = (t, self.smoother.theta.copy())
@@ -382,9 +419,12 @@ def run_vio_bag(
     n_total = len(vb)
     try:
         for item in worker:
-            keyframe = driver.feed(item)
+            for taken, keyframe in driver.feed(item):
+                if observer is not None:
+                    observer(frame_event(taken, driver.smoother, keyframe, driver.rejected))
+        for taken, keyframe in driver.finish():
             if observer is not None:
-                observer(frame_event(item, driver.smoother, keyframe, driver.rejected))
+                observer(frame_event(taken, driver.smoother, keyframe, driver.rejected))
             if progress is not None:
                 data_s = (item.frame.timestamp_ns - driver.t_start_data) / NS
                 progress(item.index + 1, n_total, time.perf_counter() - t_wall, data_s)

@@ -17,6 +17,7 @@ FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 NS = 1_000_000_000
 MODES = ("dcc", "scc", "mono")
+INITIALIZATIONS = ("auto", "standstill", "motion")
 #: Largest |time offset| accepted as a start value, s.
 MAX_TIME_OFFSET_S = 0.5
 
@@ -52,6 +53,12 @@ class VioOptions:
     ``stamp_jitter`` = 1-sigma (s) of each
     camera's header stamps around its exposure times (None: measured from the stamps by
     :func:`~dcc_fg.vio.backend.runner.run_vio` and ``dcc-fg vio``).
+
+    Start (:mod:`~dcc_fg.vio.backend.motion_init`, without a given initial state): ``initialization``
+    ``standstill`` (gravity from the first ``standstill_window`` s of IMU, the body must be still),
+    ``motion`` (visual-inertial alignment over the first ``motion_init_window`` s, retried up to
+    ``motion_init_max_window`` s) or ``auto`` (standstill when the IMU and the static tracks are at rest
+    over the first ``standstill_window`` s, else motion).
 
     ``joint_sigmas`` (``dcc``): every keyframe's joint-angle 1-sigma (rad) from the window's marginal
     covariance of ``t(k)`` at the last update before the keyframe leaves the window (the estimate the
@@ -106,8 +113,13 @@ class VioOptions:
     stamp_jitter: tuple[float, float] | None = None
     time_offset_freeze_sigma: float | None = None
     joint_sigmas: bool = False
+    initialization: str = "auto"
+    motion_init_window: float = 1.0
+    motion_init_max_window: float = 3.0
 
     def __post_init__(self) -> None:
+        if self.initialization not in INITIALIZATIONS:
+            raise ValueError(f"initialization '{self.initialization}' is not one of {', '.join(INITIALIZATIONS)}")
         if self.mode not in MODES:
             raise ValueError(f"mode '{self.mode}' is not one of {', '.join(MODES)}")
         if self.smoother not in ("incremental", "batch"):
@@ -122,6 +134,8 @@ class VioOptions:
             "restart_velocity_sigma",
             "restart_theta_sigma",
             "time_offset_prior_sigma",
+            "motion_init_window",
+            "motion_init_max_window",
         ):
             value = getattr(self, name)
             if not (np.isfinite(value) and value > 0):

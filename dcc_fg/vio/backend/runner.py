@@ -16,6 +16,7 @@ from dcc_fg.data.vio import ImuConfig, ImuSamples, TrackFrame, check_imu_against
 from dcc_fg.io.pairing import stamp_jitter_s
 from dcc_fg.model import GimbalCalibration
 from dcc_fg.vio.backend.landmarks import validate_frames
+from dcc_fg.vio.backend.motion_init import StartSelector, start_sigmas
 from dcc_fg.vio.backend.options import NS, InitialState, VioOptions, VioResult
 from dcc_fg.vio.backend.smoother import VioSmoother
 
@@ -52,7 +53,17 @@ def run_vio(
         raise ValueError("no camera frame lies within the IMU time span")
     if initial is not None:
         frames = [f for f in frames if f.timestamp_ns >= initial.t_ns]
-    sm.initialize(frames[0], initial)
+    how, detail = ("given", "initial state given") if initial is not None else ("standstill", "")
+    selector = StartSelector(imu, imu_config, options)
+    if initial is None and options.initialization != "standstill":
+        for f in frames:
+            initial = selector.push(f)
+            if initial is not None:
+                how, detail = selector.how, selector.detail
+                log.info("VIO start: %s (%s)", how, detail)
+                break
+    sm.initialize(frames[0], initial, start_sigmas(selector, options))  # None: standstill (or its refusal)
+    sm.stats["start"] = {"how": how, "detail": detail}
     for i, f in enumerate(frames[1:], start=1):
         sm.add_frame(f)
         if progress is not None:

@@ -205,26 +205,28 @@ class VioSmoother:
             stamps,
         )
 
+    def _theta_initial(self) -> FloatArray:
+        """``theta_initial`` (rad), which a ``dcc`` start without given joint angles needs."""
+        if self.opt.theta_initial is None or len(self.opt.theta_initial) != self.L:
+            raise ValueError(f"dcc mode from standstill needs theta_initial ({self.L} joint angles, rad)")
+        return np.asarray(self.opt.theta_initial, float)
+
     def _standstill_initial_state(self, frame: TrackFrame) -> InitialState:
         initial = standstill_state(self.imu, frame.timestamp_ns, self.opt.standstill_window, self.cfg.gravity, self.L)
         if self.opt.mode != "dcc":
             return initial
-        if self.opt.theta_initial is None or len(self.opt.theta_initial) != self.L:
-            raise ValueError(f"dcc mode from standstill needs theta_initial ({self.L} joint angles, rad)")
-        return InitialState(
-            initial.t_ns,
-            initial.T_WI,
-            initial.v_W,
-            initial.acc_bias,
-            initial.gyro_bias,
-            np.asarray(self.opt.theta_initial, float),
-        )
+        i = initial
+        return InitialState(i.t_ns, i.T_WI, i.v_W, i.acc_bias, i.gyro_bias, self._theta_initial())
 
     # ------------------------------------------------------------------ main loop
-    def initialize(self, frame: TrackFrame, initial: InitialState | None) -> None:
-        """Start at ``frame`` from ``initial`` (at the frame's time) or from standstill."""
+    def initialize(self, frame: TrackFrame, initial: InitialState | None, sigmas: AnchorSigmas | None = None) -> None:
+        """Start at ``frame`` from ``initial`` (at the frame's time; without joint angles in ``dcc``:
+        ``theta_initial``) or from standstill, anchored with ``sigmas`` (default: the first keyframe's)."""
         if initial is None:
             initial = self._standstill_initial_state(frame)
+        elif self.opt.mode == "dcc" and np.asarray(initial.theta).size == 0:
+            i = initial
+            initial = InitialState(i.t_ns, i.T_WI, i.v_W, i.acc_bias, i.gyro_bias, self._theta_initial())
         theta0 = start_joint_angles(initial, self.opt, self.L)
         if initial.t_ns != frame.timestamp_ns:
             raise ValueError("the initial state must be at the time of the first frame")
@@ -238,7 +240,7 @@ class VioSmoother:
         )
         self.theta = theta0 if self.L else np.zeros(0)
         dcc = self.opt.mode == "dcc"
-        sigmas = AnchorSigmas.first_keyframe(self.opt)
+        sigmas = sigmas or AnchorSigmas.first_keyframe(self.opt)
         graph, values, stamps = anchor_factors(0, t, pose, v, self.bias, self.theta if dcc else None, sigmas)
         self.exposure.anchor(graph, values, stamps, t)
         self.segments.append({"k": 0, "start_ns": t, "reason": "start"})

@@ -69,6 +69,20 @@ class AnchorSigmas:
         )
 
     @classmethod
+    def motion_start(cls, o: VioOptions, gravity_sigma: float, velocity_sigma: float) -> AnchorSigmas:
+        """The priors on a first keyframe from the visual-inertial alignment in motion: rotation and
+        velocity at twice the alignment's 1-sigma (rad, m/s; its gravity direction and velocity), at
+        least the first keyframe's usual priors."""
+        return cls(
+            max(o.prior_rotation_sigma, 2.0 * gravity_sigma),
+            o.prior_position_sigma,
+            max(o.prior_velocity_sigma, 2.0 * velocity_sigma),
+            o.prior_acc_bias_sigma,
+            o.prior_gyro_bias_sigma,
+            o.theta_prior_sigma,
+        )
+
+    @classmethod
     def recovery(cls, o: VioOptions) -> AnchorSigmas:
         """The moderate priors of a restarted window."""
         return cls(
