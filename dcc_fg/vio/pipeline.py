@@ -70,13 +70,19 @@ class PipelineOptions:
     ``worker`` runs the front end ``inline`` or in a child ``process`` one or two frames ahead of
     the smoother, on a second core (:mod:`dcc_fg.vio.worker`); ``auto`` (default) picks ``process``
     when this process may use at least two cores (see :func:`~dcc_fg.vio.worker.resolve_mode`;
-    ``benchmarks/bench_vio.py`` measures both on a given machine)."""
+    ``benchmarks/bench_vio.py`` measures both on a given machine). ``start_s``: skip the first seconds of
+    the bag (from its first IMU sample), e.g. to start in motion."""
 
     reject_dynamic: bool = True
     fit_initial_joints: bool = True
     worker: str = "auto"
     tolerance_ns: int | None = None
     frontend: FrontendConfig | None = None
+    start_s: float = 0.0
+
+    def __post_init__(self) -> None:
+        if not (np.isfinite(self.start_s) and self.start_s >= 0):
+            raise ValueError(f"start_s must be a number of seconds >= 0, got {self.start_s!r}")
 
 
 def check_bag_inputs(calibration: GimbalCalibration, options: VioOptions, topics: BagTopics) -> None:
@@ -410,7 +416,11 @@ def run_vio_bag(
     if options.stamp_jitter is None:
         options = dataclasses.replace(options, stamp_jitter=vb.stamp_jitter())
     t_first, t_last = int(vb.imu.t_ns[0]), int(vb.imu.t_ns[-1])
-    t_min = t_first if initial is None else max(t_first, int(initial.t_ns))
+    t_min = t_first + int(pipeline.start_s * NS) if initial is None else max(t_first, int(initial.t_ns))
+    if t_min >= t_last:
+        raise ValueError(
+            f"{bag}: start {pipeline.start_s:g} s is after the end of the IMU data ({(t_last - t_first) / NS:.1f} s)"
+        )
     guess = joint_angle_guess(options, initial)
     theta0 = guess if guess is not None else np.zeros(calibration.n_joints)
     spec = frontend_spec(bag, calibration, options, topics, pipeline, theta0, (t_min, t_last))
