@@ -27,6 +27,7 @@ from dcc_fg.plots.output import write_calibration_outputs
 from dcc_fg.report import demo_table, parameter_table
 from dcc_fg.sim.calibration_scene import SceneConfig, SimulatedCalibration, simulate_calibration
 from dcc_fg.studies.calibration_accuracy import CramerRaoBound, cramer_rao_bound, evaluate_against_truth
+from dcc_fg.viz.rerun_log import RerunOptions, record_calibration
 
 FloatArray = NDArray[np.float64]
 
@@ -145,8 +146,12 @@ def run_demo(
     figures: bool = True,
     report: bool = False,
     provenance: dict[str, Any] | None = None,
+    rerun: RerunOptions | None = None,
 ) -> dict[str, Any]:
     """Run the demo; returns the summary dictionary (also written to ``out_dir/summary.json``).
+
+    ``rerun``: also record the bundle calibration for Rerun (:func:`~dcc_fg.viz.rerun_log.record_calibration`:
+    corners and the chain per snapshot; the simulation has no images).
 
     ``figures`` saves the calibration figures (with the ground truth) as ``out_dir/calibration_*.png``;
     ``report`` also writes ``out_dir/report.pdf`` (the demo table, then the figures); ``provenance``
@@ -169,6 +174,10 @@ def run_demo(
         runs.bundle.calibration.save(stage / "calibration.yaml")
         write_joint_angles_csv(stage / "joint_angles.csv", runs.bundle.timestamps_ns, runs.bundle.joint_angles)
         summary["total_time_s"] = time.perf_counter() - t0  # simulation, calibrations, evaluation (figures: below)
+        if rerun is not None:
+            t_rec = time.perf_counter()
+            record_calibration(rerun, runs.bundle, runs.sim.calibration_set, None)
+            summary["rerun_time_s"] = time.perf_counter() - t_rec
         t_fig = time.perf_counter()
         staged = write_demo_figures(stage, runs, summary, report) if figures or report else []
         figure_paths = [outputs.final(p) for p in staged]

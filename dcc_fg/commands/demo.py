@@ -31,8 +31,10 @@ DEMO_DESCRIPTION = (
 
 def demo_command(args: argparse.Namespace) -> int:
     options = DemoOptions(args.seed, args.joints, args.report)
+    rerun = common.rerun_options(args)
     provenance = run_record("demo", {}, options)
-    run_demo(Path(args.out), seed=options.seed, n_joints=options.joints, report=options.report, provenance=provenance)
+    out = Path(args.out)
+    run_demo(out, seed=options.seed, n_joints=options.joints, report=options.report, provenance=provenance, rerun=rerun)
     return 0
 
 
@@ -44,3 +46,4 @@ def add_parser(sub: Any, parent: argparse.ArgumentParser) -> None:
     d.add_argument("--seed", type=int, default=0, help="random seed of the simulation (default 0)")
     d.add_argument("--joints", type=int, default=2, choices=[0, 1, 2, 3], help="number of gimbal joints L (default 2)")
     d.add_argument("--report", action="store_true", help="also write OUT/report.pdf (tables and figures)")
+    common.add_rerun_flags(d, "the calibration snapshots' corners, detected and reprojected, and the chain's frames")
