@@ -61,10 +61,27 @@ def test_ordered_map_keeps_order_bounds_memory_and_raises_in_place() -> None:
         resolve_jobs(-1)
 
 
-def test_a_detector_that_cannot_be_pickled_runs_serially(caplog: pytest.LogCaptureFixture) -> None:
-    with caplog.at_level(logging.INFO):
+class _Collect(logging.Handler):
+    def __init__(self) -> None:
+        super().__init__(logging.INFO)
+        self.messages: list[str] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.messages.append(record.getMessage())
+
+
+def test_a_detector_that_cannot_be_pickled_runs_serially() -> None:
+    # a handler on the module's logger: the CLI tests may have stopped dcc_fg's loggers propagating
+    logger = logging.getLogger("dcc_fg.sources.parallel_detection")
+    handler, level = _Collect(), logger.level
+    logger.addHandler(handler)
+    logger.setLevel(logging.INFO)
+    try:
         assert pool_jobs(lambda img, tgt: detect_target(img, tgt), 2) == 1  # noqa: PLW0108
-    assert "not a module-level function" in caplog.text
+    finally:
+        logger.removeHandler(handler)
+        logger.setLevel(level)
+    assert any("not a module-level function" in m for m in handler.messages)
     assert pool_jobs(detect_target, 2) == 2 and pool_jobs(detect_target, 1) == 1
 
 
