@@ -1,7 +1,9 @@
 """``--rerun FILE.rrd`` on calibrate, validate and vio (issue 17, item 2): the recording is read back with
 Rerun's own reader (``rerun.chunk.RrdReader``, rerun-sdk 0.41) and checked against the run's output files
-(entity paths, one row per snapshot / keyframe, joint angles, poses, residuals); without rerun-sdk the
-flag is refused before any work with what to install.
+(entity paths, one row per snapshot / keyframe, joint angles, poses, residuals) and, for the VIO's tracks and
+landmarks, against the pipeline's own frame events (one row per processed frame, pixels = the camera model's
+projection of the tracked normalized coordinates, match and rejection classes, the window's landmarks);
+without rerun-sdk the flag is refused before any work with what to install.
 
 Small inputs keep it fast (~20 s): a rendered 12-snapshot checkerboard set (image folder and ROS2 bag) and
 a rendered 8 s flight at half resolution.
@@ -20,10 +22,12 @@ import numpy as np
 import pyarrow as pa
 import pytest
 
+import dcc_fg.commands.vio as vio_command
 import dcc_fg.viz.rerun_log as rerun_log
 from dcc_fg import load_calibration
 from dcc_fg.calibrate import CalibrationOptions, calibrate
 from dcc_fg.cli import main
+from dcc_fg.data.vio import TrackFrame
 from dcc_fg.io.outputs import read_joint_angles_csv
 from dcc_fg.io.tum import read_tum
 from dcc_fg.sim.calibration_scene import SceneConfig, simulate_calibration
@@ -32,10 +36,13 @@ from dcc_fg.sim.trajectory import FlightConfig
 from dcc_fg.sim.write_dataset import CalibrationSimSpec, RenderedCalibration, write_calibration_dataset
 from dcc_fg.vio.backend import VioResult
 from dcc_fg.vio.evaluate import GroundTruth
+from dcc_fg.vio.pipeline import FrameEvent, run_vio_bag
 from dcc_fg.viz import scene
+from dcc_fg.viz import vio_scene as vs
 from dcc_fg.viz.images import nearest_within
 from dcc_fg.viz.vio_scene import segment_slices, truth_in_estimate_frame
 from factors import chain
+from factors.camera import CameraModel
 
 try:
     from rerun.chunk import RrdReader
@@ -231,13 +238,37 @@ def flight(tmp_path_factory: pytest.TempPathFactory) -> FlightBag:
     return write_flight(tmp_path_factory.mktemp("flight") / "f", "ros2", FlightConfig.short(8.0), seed=0, scale=0.5)
 
 
+def _collect_events(monkeypatch: pytest.MonkeyPatch, events: list[FrameEvent]) -> list[Any]:
+    """Make ``dcc-fg vio`` keep the frame events its observer sees; returns the observers it passed."""
+    observers: list[Any] = []
+
+    def run_and_collect(*args: Any, observer: Any = None, **kwargs: Any) -> Any:
+        observers.append(observer)
+
+        def both(event: FrameEvent) -> None:
+            events.append(event)
+            if observer is not None:
+                observer(event)
+
+        return run_vio_bag(*args, observer=both, **kwargs)
+
+    monkeypatch.setattr(vio_command, "run_vio_bag", run_and_collect)
+    return observers
+
+
 @needs_rerun
-def test_vio_recording_matches_the_outputs(flight: FlightBag, tmp_path: Path) -> None:
+def test_vio_recording_matches_the_outputs(flight: FlightBag, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     rrd, out = tmp_path / "vio.rrd", tmp_path / "run"
     argv = ["vio", str(flight.bag), "--calibration", str(flight.calibration), "--out", str(out), "-q"]
+    events: list[FrameEvent] = []
+    observers = _collect_events(monkeypatch, events)
     assert main([*argv, "--frontend", "inline", "--rerun", str(rrd)]) == 0
+    assert isinstance(observers[0], rerun_log.VioRecorder)
     rec = load_rrd(rrd)
     expected = {
+        "/" + rerun_log.STATIC_TRACKS,
+        "/" + rerun_log.GIMBAL_TRACKS,
+        "/" + rerun_log.LANDMARKS,
         "/world",
         "/world/body",
         "/world/body/static_camera",
@@ -277,6 +308,116 @@ def test_vio_recording_matches_the_outputs(flight: FlightBag, tmp_path: Path) ->
     truth_p = np.array(rec["/world/trajectory/truth"]["static"]["LineStrips3D:strips"][0])
     est_p = np.concatenate([np.array(s) for s in rec["/world/trajectory/estimate"]["static"]["LineStrips3D:strips"]])
     assert np.abs(truth_p[0] - est_p[0]).max() < 0.5 and len(truth_p) >= K - 2
+    _check_tracks_and_landmarks(rec, events, out, flight, t_tum)
+
+
+def _check_tracks_and_landmarks(
+    rec: dict[str, dict[str, Any]], events: list[FrameEvent], out: Path, flight: FlightBag, t_kf: np.ndarray
+) -> None:
+    """One row of tracks per processed frame in each camera, in pixels of the camera model, classed by match
+    and rejection; the window's landmarks at every keyframe, on the keyframe timeline of the result."""
+    summary = json.loads((out / "summary.json").read_text())
+    rows = {
+        cam: rec["/" + entity]["rows"]
+        for cam, entity in (("s", rerun_log.STATIC_TRACKS), ("d", rerun_log.GIMBAL_TRACKS))
+    }
+    n = summary["frames"]
+    assert len(events) == n and len(rows["s"]) == n and len(rows["d"]) == n
+    assert [r["frame"] for r in rows["s"]] == [e.index for e in events] == [r["frame"] for r in rows["d"]]
+    assert [r["time"] for r in rows["s"]] == [e.frame.timestamp_ns for e in events]
+    keyframe_rows = [r for r in rows["s"] if r.get("keyframe") is not None]
+    assert [r["keyframe"] for r in keyframe_rows] == list(range(len(t_kf)))
+    assert [r["time"] for r in keyframe_rows] == [int(x) for x in t_kf]  # the keyframes of trajectory.tum
+    cal = load_calibration(flight.calibration)
+    cameras = {"s": cal.static_camera, "d": cal.dynamic_camera}
+    rejected = 0
+    for i, (e, rs, rd) in enumerate(zip(events, rows["s"], rows["d"], strict=True)):
+        ids = {"s": e.frame.static_ids, "d": e.frame.dynamic_ids}
+        xy = {"s": e.frame.static_xy, "d": e.frame.dynamic_xy}
+        for cam, row in (("s", rs), ("d", rd)):
+            assert row["track_id"] == ids[cam].tolist()
+            uv = np.array(row["Points2D:positions"]).reshape(-1, 2)
+            w, h = cameras[cam].resolution
+            assert np.all((uv >= 0) & (uv <= [w - 1, h - 1]))  # inside the image
+            if i in (0, n // 2, n - 1):  # the camera model's projection of the normalized coordinates
+                expected_uv, _ = cameras[cam].project(np.column_stack([xy[cam], np.ones(len(xy[cam]))]))
+                np.testing.assert_allclose(uv, expected_uv, atol=1e-3)  # stored as float32
+        matched_s = np.isin(ids["s"], ids["d"])
+        assert rs["Points2D:class_ids"] == np.where(matched_s, vs.STATIC_MATCHED, vs.STATIC_ONLY).tolist()
+        classes_d = np.where(np.isin(ids["d"], ids["s"]), vs.GIMBAL_MATCHED, vs.GIMBAL_ONLY)
+        is_rejected = np.isin(ids["d"], e.rejected_ids)
+        classes_d[is_rejected] = vs.GIMBAL_REJECTED
+        assert rd["Points2D:class_ids"] == classes_d.tolist()
+        assert e.keyframe or not len(e.rejected_ids)  # stage two runs at keyframes
+        rejected += int(is_rejected.sum())
+    assert np.mean([np.isin(e.frame.static_ids, e.frame.dynamic_ids).any() for e in events]) > 0.9
+    assert rejected >= summary["run"]["dynamic_tracks_rejected"] > 0  # the run's count of stage-two drops
+    # the window's landmarks: one set per keyframe (replacing the previous), in W, classed by who sees them
+    landmarks = rec["/" + rerun_log.LANDMARKS]["rows"]
+    kf_events = [e for e in events if e.keyframe]
+    assert [r["keyframe"] for r in landmarks] == list(range(len(t_kf))) and len(kf_events) == len(t_kf)
+    for row, e in zip(landmarks, kf_events, strict=True):
+        assert e.landmarks is not None and row["track_id"] == list(e.landmarks)
+        p = np.array(row["Points3D:positions"]).reshape(-1, 3)
+        np.testing.assert_allclose(p, np.array(list(e.landmarks.values())).reshape(-1, 3), rtol=1e-6, atol=1e-4)
+        seen_s = np.isin(row["track_id"], e.frame.static_ids)
+        assert np.all((np.array(row["Points3D:class_ids"]) == vs.LANDMARK_STATIC) == seen_s)
+    # the first keyframes have no triangulated landmarks yet (a track needs 3 keyframes)
+    assert np.median([len(r["track_id"]) for r in landmarks]) >= 10
+    classes = np.concatenate([r["Points3D:class_ids"] for r in landmarks])
+    assert {vs.LANDMARK_STATIC, vs.LANDMARK_UNSEEN} <= set(classes.tolist())
+    # every class has its label and colour in the annotation context on world (rejected: red)
+    infos = {
+        c["class_id"]: c["class_description"]["info"] for c in rec["/world"]["static"]["AnnotationContext:context"][0]
+    }
+    assert {c: info["label"] for c, info in infos.items()} == {
+        c: label for c, (label, _) in {**vs.TRACK_CLASSES, **vs.LANDMARK_CLASSES}.items()
+    }
+    assert infos[vs.GIMBAL_REJECTED]["color"] >> 8 == 0xF02828  # RGBA packed
+
+
+def test_vio_without_a_recording_passes_no_observer(
+    flight: FlightBag, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Without --rerun the pipeline gets no observer (and pays nothing for one)."""
+    observers: list[Any] = []
+
+    class Stop(Exception):
+        pass
+
+    def stop(*args: Any, observer: Any = None, **kwargs: Any) -> Any:
+        observers.append(observer)
+        raise Stop
+
+    monkeypatch.setattr(vio_command, "run_vio_bag", stop)
+    inputs = vio_command.VioInputs(str(flight.bag), str(flight.calibration))
+    with pytest.raises(Stop):
+        vio_command.run_vio(inputs, tmp_path / "run", vio_command.VioConfig(), quiet=True)
+    assert observers == [None]
+
+
+def test_frame_tracks_and_window_landmarks_classes() -> None:
+    """Matched = the id in both cameras' lists, rejected overrides matched; pixels through the distortion;
+    landmarks seen by the static camera, else only by the gimbal camera, else by neither; empty frames."""
+    camera = CameraModel((400.0, 410.0, 320.0, 240.0), "radtan", (-0.2, 0.05, 1e-3, -1e-3))
+    xy = np.array([[0.1, -0.2], [0.0, 0.0], [-0.3, 0.25]])
+    frame = TrackFrame(10, np.array([1, 2, 3]), xy, np.array([2, 3, 7]), xy[::-1].copy())
+    static, gimbal = vs.frame_tracks(frame, np.array([3, 99]), camera, camera)
+    assert static.classes.tolist() == [vs.STATIC_ONLY, vs.STATIC_MATCHED, vs.STATIC_MATCHED]
+    assert gimbal is not None and gimbal.ids.tolist() == [2, 3, 7]
+    assert gimbal.classes.tolist() == [vs.GIMBAL_MATCHED, vs.GIMBAL_REJECTED, vs.GIMBAL_ONLY]
+    fx, fy, cx, cy = camera.intrinsics
+    xd, _ = camera.distort(xy)
+    np.testing.assert_allclose(static.uv, np.column_stack([fx * xd[:, 0] + cx, fy * xd[:, 1] + cy]), atol=1e-12)
+    np.testing.assert_allclose(static.uv[1], [cx, cy])
+    assert vs.frame_tracks(frame, np.zeros(0, np.int64), camera, None)[1] is None  # mono: no gimbal camera
+    empty = TrackFrame(11, np.zeros(0, np.int64), np.zeros((0, 2)))
+    s0, d0 = vs.frame_tracks(empty, np.zeros(0, np.int64), camera, camera)
+    assert s0.uv.shape == (0, 2) and d0 is not None and d0.uv.shape == (0, 2) and d0.classes.shape == (0,)
+    lms = vs.window_landmarks({2: np.zeros(3), 7: np.ones(3), 50: np.full(3, 2.0)}, frame)
+    assert lms.ids.tolist() == [2, 7, 50] and lms.points.shape == (3, 3)
+    assert lms.classes.tolist() == [vs.LANDMARK_STATIC, vs.LANDMARK_GIMBAL_ONLY, vs.LANDMARK_UNSEEN]
+    assert vs.window_landmarks({}, frame).points.shape == (0, 3)
 
 
 def _truth_case(mode: str, scale: float) -> tuple[VioResult, GroundTruth, np.ndarray]:

@@ -51,14 +51,15 @@ def dcc(flights: dict[str, FlightBag]) -> dict[str, Any]:
     focal = float(cal.static_camera.intrinsics[0])  # type: ignore[union-attr]
     events: list[FrameEvent] = []
     opts = VioOptions(mode="dcc", sigma=1.0 / focal, keyframe_every=3)
-    res, run = run_vio_bag(fb.bag, cal, imu, opts, observer=events.append)
+    progress: list[tuple[int, int, float, float]] = []
+    res, run = run_vio_bag(fb.bag, cal, imu, opts, observer=events.append, progress=lambda *a: progress.append(a))
     gt = load_ground_truth(fb.bag)
     ev = evaluate_trajectory(res.timestamps_ns, res.T_WI, gt, "se3")
     ev["joint_rmse_rad"] = joint_rmse(res.timestamps_ns, res.theta, gt)
     # slew_recovery_errors works on simulation times: undo the bag's time offset
     t0 = int(gt.t_ns[0]) - int(fb.truth.t_ns[0])
     res.timestamps_ns = res.timestamps_ns - t0
-    return {**ev, "result": res, "truth": fb.truth, "run": run, "events": events}
+    return {**ev, "result": res, "truth": fb.truth, "run": run, "events": events, "progress": progress}
 
 
 @pytest.fixture(scope="module")
@@ -106,6 +107,7 @@ def test_observer_sees_every_frame(dcc: dict[str, Any]) -> None:
     events: list[FrameEvent] = dcc["events"]
     res = dcc["result"]
     assert len(events) == res.stats["frames"] > 0
+    assert len(dcc["progress"]) == res.stats["frames"]  # one progress call per frame
     assert [e.index for e in events] == sorted(e.index for e in events)
     kf = [e for e in events if e.keyframe]
     assert len(kf) == res.timestamps_ns.size

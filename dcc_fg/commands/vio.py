@@ -36,7 +36,7 @@ from dcc_fg.vio.backend import VioOptions, write_vio_outputs
 from dcc_fg.vio.frontend import FrontendConfig
 from dcc_fg.vio.health import vio_health
 from dcc_fg.vio.pipeline import BagTopics, PipelineOptions, run_vio_bag
-from dcc_fg.viz.rerun_log import RerunOptions, record_vio
+from dcc_fg.viz.rerun_log import RerunOptions, vio_recording
 
 #: Kalibr imu.yaml keys -> ImuConfig fields
 KALIBR_IMU_KEYS = {
@@ -95,7 +95,8 @@ class VioRunOptions:
     so a free-running gimbal camera pairs every static frame with its nearest image);
     ``dynamic_rejection``: the second stage of the gimbal outlier handling; ``frontend_worker``: ``auto`` |
     ``inline`` | ``process``; ``fit_initial_joints``: start the
-    dcc joint angles from the first frame's static <-> gimbal matches.
+    dcc joint angles from the first frame's static <-> gimbal matches; ``start_s``: skip the first seconds
+    of the bag (from its first IMU sample).
     """
 
     pixel_sigma: float = 1.0
@@ -103,6 +104,7 @@ class VioRunOptions:
     dynamic_rejection: bool = True
     frontend_worker: str = "auto"
     fit_initial_joints: bool = True
+    start_s: float = 0.0
 
     def __post_init__(self) -> None:
         if not (np.isfinite(self.pixel_sigma) and self.pixel_sigma > 0):
@@ -135,8 +137,9 @@ class VioOutputOptions:
 #: What ``--rerun`` shows of a VIO run (help text).
 RERUN_SHOWS = (
     "per keyframe, the body pose with the static camera and the gimbal chain at the estimated joint angles, the "
-    "trajectory (and the ground truth), joint angles, speed and IMU biases over time. Tracked features and the "
-    "window's landmarks are not recorded (the pipeline does not keep them after the run)"
+    "trajectory (and the ground truth), joint angles, speed and IMU biases over time; per frame each camera's "
+    "tracked features (pixels; matched across the cameras or not, rejected by stage two) and at keyframes the "
+    "window's landmarks. No camera images"
 )
 
 #: VioOptions fields a config may not set: they are computed from other options.
@@ -304,8 +307,9 @@ def run_vio(
     """Validate the inputs and options, run the VIO over ``inputs.bag`` and write ``out``; returns the
     VioResult. ``config_source`` names where the options came from in error messages; ``config_file``
     (the ``--config`` file) is protected like the inputs. ``rerun``: also record the run for Rerun
-    (:func:`dcc_fg.viz.rerun_log.record_vio`, before the health checks, so an unhealthy trajectory can be
-    inspected), with the ground truth ``rerun_ground_truth`` (TUM file or bag; default: the bag's own
+    (:func:`dcc_fg.viz.rerun_log.vio_recording`: the tracks and landmarks per frame while it runs, the
+    estimates after it; complete before the health checks, so an unhealthy trajectory can be inspected),
+    with the ground truth ``rerun_ground_truth`` (TUM file or bag; default: the bag's own
     ``/ground_truth/pose`` topic when it has one).
 
     ``out`` is written as one output set (:class:`~dcc_fg.io.output_set.OutputSet`): checked before any
@@ -335,15 +339,20 @@ def run_vio(
         tolerance_ns=None if config.run.sync_tolerance_ms is None else int(round(config.run.sync_tolerance_ms * 1e6)),
         worker=config.run.frontend_worker,
         frontend=frontend_config(config, cal),
+        start_s=config.run.start_s,
     )
     with outputs:
         bar = ProgressBar(progress)
-        try:
-            result, run = run_vio_bag(bag, cal, imu, options, topics, pipeline, progress=bar if progress else None)
-        finally:
-            bar.close()
-        if rerun is not None:
-            record_vio(rerun, result, cal, imu.T_sI, bag, rerun_ground_truth)
+        recording = vio_recording(rerun or RerunOptions(), cal, imu.T_sI, options.mode, bag, rerun_ground_truth)
+        with recording as recorder:
+            try:
+                result, run = run_vio_bag(
+                    bag, cal, imu, options, topics, pipeline, progress=bar if progress else None, observer=recorder
+                )
+            finally:
+                bar.close()
+            if recorder is not None:
+                recorder.finish(result)
         health = common.judge_health(vio_health(result, imu, options), config.output.accept_unhealthy)
         provenance = run_record("vio", inputs.paths(), config)
         provenance["options"] = config_text_vio(config)
@@ -440,6 +449,11 @@ def add_vio_flags(v: argparse.ArgumentParser) -> None:
         "the camchain's timeshift_cam_imu, else 0,0. Estimated online unless --fix-time-offsets")  # fmt: skip
     opt(v, "--fix-time-offsets", "smoother.estimate_time_offsets", action="store_false",
         help="hold the time offsets at their start values instead of estimating them")  # fmt: skip
+    opt(v, "--start", "run.start_s", type=float, metavar="S", help="skip the first S seconds of the bag (from its "
+        "first IMU sample); the VIO then starts in motion unless the body is at rest there")  # fmt: skip
+    opt(v, "--initialization", "smoother.initialization", choices=["auto", "standstill", "motion"], help="how the VIO "
+        "starts without a given state: auto (default) at rest when the IMU and the static tracks are still over the "
+        "first 0.5 s, else by visual-inertial alignment in motion; standstill or motion force one")  # fmt: skip
     opt(v, "--joint-sigmas", "smoother.joint_sigmas", action="store_true", help="dcc: each keyframe's joint-angle "
         "1-sigma from the window's marginal covariance before it leaves (OUT/joint_angles_sigma.csv, the band in "
         "the figures); measured: 4x the smoother time of a run without")  # fmt: skip

@@ -184,13 +184,15 @@ class SmootherDriver:
         self.kf_prev: tuple[int, FloatArray] | None = None  # last keyframe's time and joint angles (dcc)
         self.rejected = np.zeros(0, np.int64)  # gimbal track ids stage two rejected after the last frame
         self.pending: list[Tracked] = []  # frames waiting for the start decision
+        self.observer: Callable[[FrameEvent], None] | None = None
         self.selector = StartSelector(imu, imu_config, options)
         self.start: dict[str, str] = {"how": "standstill", "detail": ""}
 
     def feed(self, item: Tracked) -> list[tuple[Tracked, bool]]:
         """Process one tracked frame; returns the frames the smoother took in this call, each with
         whether it became a keyframe: none while the start is being decided (the frames wait), then
-        the waiting ones and this one (:mod:`~dcc_fg.vio.backend.motion_init`)."""
+        the waiting ones and this one (:mod:`~dcc_fg.vio.backend.motion_init`). ``observer`` (if set)
+        gets each frame's :class:`FrameEvent` right after the smoother took it."""
         if self.smoother is None:
             if not self.pending and self.options.mode == "dcc":
                 self._first_frame_joints(item.frame)
@@ -215,7 +217,13 @@ class SmootherDriver:
         self.pending = []
         self._start(first.frame, state)
         self.t_prev = first.frame.timestamp_ns
+        self.rejected = np.zeros(0, np.int64)
+        self._emit(first, True)
         return [(first, True)] + [(it, self._take(it)) for it in rest]
+
+    def _emit(self, item: Tracked, keyframe: bool) -> None:
+        if self.observer is not None:
+            self.observer(frame_event(item, self.smoother, keyframe, self.rejected))
 
     def _take(self, item: Tracked) -> bool:
         """The smoother takes one frame; True if it became a keyframe."""
@@ -227,6 +235,7 @@ class SmootherDriver:
         if keyframe and self.options.mode == "dcc":
             self._keyframe_added(item)
         self.t_prev = frame.timestamp_ns
+        self._emit(item, keyframe)
         return keyframe
 
     def _first_frame_joints(self, frame: TrackFrame) -> None:
@@ -428,16 +437,13 @@ def run_vio_bag(
     driver = SmootherDriver(vb.imu, imu_config, calibration, options, pipeline, initial, guess, worker)
     n_total = len(vb)
     try:
+        driver.observer = observer
         for item in worker:
-            for taken, keyframe in driver.feed(item):
-                if observer is not None:
-                    observer(frame_event(taken, driver.smoother, keyframe, driver.rejected))
-        for taken, keyframe in driver.finish():
-            if observer is not None:
-                observer(frame_event(taken, driver.smoother, keyframe, driver.rejected))
+            driver.feed(item)
             if progress is not None:
                 data_s = (item.frame.timestamp_ns - driver.t_start_data) / NS
                 progress(item.index + 1, n_total, time.perf_counter() - t_wall, data_s)
+        driver.finish()
     finally:
         worker.close()
     if driver.smoother is None:

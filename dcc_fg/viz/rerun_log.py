@@ -6,7 +6,8 @@ refuses a ``--rerun`` request without it before any work starts. The geometry co
 :mod:`dcc_fg.viz.scene` and :mod:`dcc_fg.viz.vio_scene`, the images from :mod:`dcc_fg.viz.images`.
 
 Recording layout (timelines ``snapshot`` (sequence) and ``time`` (timestamp, the snapshot's or
-keyframe's stamp in ns) for calibration and validation; ``keyframe`` and ``time`` for VIO):
+keyframe's stamp in ns) for calibration and validation; ``keyframe``, ``frame`` (the frame's index in the
+bag's synchronized pairs) and ``time`` (the static image's stamp) for VIO):
 
 * calibration / validation, world = the static camera frame s (x right, y down, z forward; metres):
   ``world/static_camera``, ``world/gimbal_base``, ``world/link_<l>`` (DH frames between the joints),
@@ -24,7 +25,16 @@ keyframe's stamp in ns) for calibration and validation; ``keyframe`` and ``time`
   truth ``world/trajectory/truth`` and ``world/truth_body`` (the truth in W, see
   :func:`dcc_fg.viz.vio_scene.truth_in_estimate_frame`) and ``joints/truth/theta_<l>``; time series
   ``joints/estimate/theta_<l>`` (rad), ``motion/speed_m_s``, ``imu/acc_bias/<axis>`` (m/s^2),
-  ``imu/gyro_bias/<axis>`` (rad/s); ``events`` (segment starts).
+  ``imu/gyro_bias/<axis>`` (rad/s); ``events`` (segment starts). Logged while the run goes
+  (:class:`VioRecorder`, the observer of :func:`~dcc_fg.vio.pipeline.run_vio_bag`), on the ``frame`` and
+  ``time`` timelines of every frame and the ``keyframe`` timeline of keyframes:
+  ``world/body/static_camera/image/tracks`` and ``world/body/static_camera/gimbal_camera/image/tracks``
+  (each camera's tracked features, pixels of the distorted image, one row per frame; class ids of
+  :data:`~dcc_fg.viz.vio_scene.TRACK_CLASSES`: matched across the cameras or not, rejected by stage two;
+  component ``track_id``) and at keyframes ``world/landmarks`` (the window's landmarks in W, m, replacing
+  the previous keyframe's; :data:`~dcc_fg.viz.vio_scene.LANDMARK_CLASSES`: seen by the static camera in
+  the keyframe, only by the gimbal camera, by neither; component ``track_id``). ``world`` holds the
+  ``AnnotationContext`` (label and colour of every class id).
 
 The file is written as ``FILE.rrd.partial`` and renamed when the recording is complete, so an error or
 Ctrl-C never leaves a truncated ``FILE.rrd``.
@@ -50,9 +60,20 @@ from dcc_fg.calibrate import CalibrationResult
 from dcc_fg.data import CalibrationDataset
 from dcc_fg.model import GimbalCalibration
 from dcc_fg.vio.backend import VioResult
+from dcc_fg.vio.evaluate import GroundTruth
+from dcc_fg.vio.pipeline import FrameEvent
 from dcc_fg.viz import scene
 from dcc_fg.viz.images import DYNAMIC_DIR, STATIC_DIR, ImageSource, calibration_images, jpeg_bytes
-from dcc_fg.viz.vio_scene import find_ground_truth, segment_slices, truth_in_estimate_frame
+from dcc_fg.viz.vio_scene import (
+    LANDMARK_CLASSES,
+    TRACK_CLASSES,
+    CameraTracks,
+    find_ground_truth,
+    frame_tracks,
+    segment_slices,
+    truth_in_estimate_frame,
+    window_landmarks,
+)
 from factors.camera import CameraModel
 
 try:
@@ -74,6 +95,13 @@ DETECTED, REPROJECTED, BORDER = (40, 220, 40), (240, 40, 40), (150, 150, 150)
 TRUTH, ESTIMATE = (240, 160, 0), (30, 140, 255)
 #: JPEG quality of the logged camera images.
 JPEG_QUALITY = 85
+#: VIO entities: the two cameras' pinholes (their tracks are ``<camera>/tracks``) and the window's landmarks.
+STATIC_IMAGE = "world/body/static_camera/image"
+GIMBAL_IMAGE = "world/body/static_camera/gimbal_camera/image"
+STATIC_TRACKS, GIMBAL_TRACKS = f"{STATIC_IMAGE}/tracks", f"{GIMBAL_IMAGE}/tracks"
+LANDMARKS = "world/landmarks"
+#: Drawn size (radius, UI points: the same on screen at any zoom) of tracked features and landmarks.
+TRACK_RADIUS_UI, LANDMARK_RADIUS_UI = 3.0, 2.0
 
 
 class RerunUnavailableError(ValueError):
@@ -357,11 +385,19 @@ def record_calibration(
 # ---------------------------------------------------------------------------------------------- VIO
 
 
-def vio_blueprint() -> Any:
-    """Layout: the 3D scene with the trajectory, the joint angles and the motion over time."""
+def vio_blueprint(gimbal: bool = True) -> Any:
+    """Layout: the 3D scene with the trajectory and the landmarks, each camera's tracks (``gimbal``: the
+    gimbal camera's too), the joint angles and the motion over time; the ``time`` timeline selected."""
+    cameras = [rrb.Spatial2DView(origin=STATIC_IMAGE, name="static camera tracks")]
+    if gimbal:
+        cameras.append(rrb.Spatial2DView(origin=GIMBAL_IMAGE, name="gimbal camera tracks"))
     return rrb.Blueprint(
         rrb.Horizontal(
-            rrb.Spatial3DView(origin="world", name="trajectory (world W, gravity -z)"),
+            rrb.Vertical(
+                rrb.Spatial3DView(origin="world", name="trajectory and landmarks (world W, gravity -z)"),
+                rrb.Horizontal(*cameras),
+                row_shares=[3, 2],
+            ),
             rrb.Vertical(
                 rrb.TimeSeriesView(origin="joints", name="joint angles (rad)"),
                 rrb.TimeSeriesView(origin="motion", name="speed (m/s)"),
@@ -369,8 +405,15 @@ def vio_blueprint() -> Any:
                 rrb.TextLogView(origin="events", name="events"),
             ),
             column_shares=[3, 2],
-        )
+        ),
+        rrb.TimePanel(timeline="time"),
     )
+
+
+def shows_gimbal(mode: str, cal: GimbalCalibration) -> bool:
+    """Whether a VIO recording of ``mode`` on ``cal`` shows the gimbal chain and camera (not ``mono``, a
+    chain with joints and a gimbal camera model)."""
+    return mode != "mono" and cal.n_joints > 0 and cal.dynamic_camera is not None
 
 
 def _trajectory_extent(T_WI: FloatArray) -> float:
@@ -382,7 +425,7 @@ def _trajectory_extent(T_WI: FloatArray) -> float:
 
 def _log_vio_chain(rec: Any, result: VioResult, cal: GimbalCalibration, indexes: Sequence[Any], length: float) -> None:
     """The chain frames relative to the static camera at each keyframe's joint angles."""
-    if result.mode == "mono" or cal.n_joints == 0 or result.theta.size == 0:
+    if not shows_gimbal(result.mode, cal) or result.theta.size == 0:
         return
     root = "world/body/static_camera"
     per_frame: dict[str, list[FloatArray]] = {}
@@ -393,7 +436,7 @@ def _log_vio_chain(rec: Any, result: VioResult, cal: GimbalCalibration, indexes:
     for name, Ts in per_frame.items():
         _send_poses(rec, f"{root}/{name}", indexes, np.asarray(Ts))
     _log_chain_axes(rec, root, list(per_frame), 0.5 * length)
-    _log_camera(rec, f"{root}/gimbal_camera/image", cal.dynamic_camera, length)
+    _log_camera(rec, GIMBAL_IMAGE, cal.dynamic_camera, length)
 
 
 def _log_vio_truth(rec: Any, result: VioResult, gt: Any, length: float) -> None:
@@ -430,7 +473,7 @@ def log_vio(rec: Any, result: VioResult, cal: GimbalCalibration, T_sI: FloatArra
     T_Is = scene.inverse(T_sI)
     rec.log("world/body/static_camera", rr.Transform3D(translation=T_Is[:3, 3], mat3x3=T_Is[:3, :3]), static=True)
     rec.log("world/body/static_camera", rr.TransformAxes3D(0.5 * length, show_frame=True), static=True)
-    _log_camera(rec, "world/body/static_camera/image", cal.static_camera, length)
+    _log_camera(rec, STATIC_IMAGE, cal.static_camera, length)
     _log_vio_chain(rec, result, cal, indexes, length)
     strips = [result.T_WI[s, :3, 3] for s in segment_slices(result)]
     labels = [f"estimate, segment {k + 1}" for k in range(len(strips))]
@@ -452,18 +495,80 @@ def log_vio(rec: Any, result: VioResult, cal: GimbalCalibration, T_sI: FloatArra
         _log_vio_truth(rec, result, ground_truth, length)
 
 
-def record_vio(
+class VioRecorder:
+    """The recording of a VIO run while it runs: the observer of :func:`~dcc_fg.vio.pipeline.run_vio_bag`
+    (called with each frame's :class:`~dcc_fg.vio.pipeline.FrameEvent`), then :meth:`finish` with the
+    result (module docstring for what is logged).
+
+    Per frame one ``Points2D`` per camera (an empty one when the camera sees nothing, so a frame never
+    shows the previous frame's tracks) and at keyframes one ``Points3D`` of the window's landmarks; the
+    ``keyframe`` timeline counts the frames that became keyframes, which are the result's keyframes in
+    order. ``gimbal``: log the gimbal camera's tracks (:func:`shows_gimbal`)."""
+
+    def __init__(
+        self, rec: Any, cal: GimbalCalibration, T_sI: FloatArray, gimbal: bool, ground_truth: GroundTruth | None
+    ) -> None:
+        if cal.static_camera is None:
+            raise ValueError("the calibration has no static camera model (cam0): the tracks cannot be drawn")
+        self.rec, self.cal, self.T_sI, self.ground_truth = rec, cal, np.asarray(T_sI, dtype=float), ground_truth
+        self.static_camera = cal.static_camera
+        self.dynamic_camera = cal.dynamic_camera if gimbal else None
+        self.keyframes = 0  # keyframes so far: the next keyframe's index
+        labels = {**TRACK_CLASSES, **LANDMARK_CLASSES}
+        infos = [rr.AnnotationInfo(id=c, label=label, color=color) for c, (label, color) in labels.items()]
+        rec.log("world", rr.AnnotationContext(infos), static=True)
+        size = rr.components.Radius.ui_points
+        for entity in [STATIC_TRACKS] + ([GIMBAL_TRACKS] if gimbal else []):
+            rec.log(entity, rr.Points2D.from_fields(radii=size(TRACK_RADIUS_UI), show_labels=False), static=True)
+        rec.log(LANDMARKS, rr.Points3D.from_fields(radii=size(LANDMARK_RADIUS_UI), show_labels=False), static=True)
+
+    def __call__(self, event: FrameEvent) -> None:
+        """Log ``event``'s tracks (both cameras) and, at a keyframe, the window's landmarks."""
+        rec, frame = self.rec, event.frame
+        rec.set_time("frame", sequence=int(event.index))
+        rec.set_time("time", timestamp=_time_ns(int(frame.timestamp_ns)))
+        if event.keyframe:
+            rec.set_time("keyframe", sequence=self.keyframes)
+            self.keyframes += 1
+        else:
+            rec.disable_timeline("keyframe")
+        static, gimbal = frame_tracks(frame, event.rejected_ids, self.static_camera, self.dynamic_camera)
+        self._log_tracks(STATIC_TRACKS, static)
+        if gimbal is not None:
+            self._log_tracks(GIMBAL_TRACKS, gimbal)
+        if event.landmarks is not None:
+            lm = window_landmarks(event.landmarks, frame)
+            rec.log(LANDMARKS, rr.Points3D(lm.points, class_ids=lm.classes), rr.AnyValues(track_id=lm.ids))
+
+    def _log_tracks(self, entity: str, tracks: CameraTracks) -> None:
+        """One camera's tracks of the current frame: pixels, class ids and track ids."""
+        self.rec.log(entity, rr.Points2D(tracks.uv, class_ids=tracks.classes), rr.AnyValues(track_id=tracks.ids))
+
+    def finish(self, result: VioResult) -> None:
+        """Log the run's per-keyframe estimates (:func:`log_vio`) after its last frame."""
+        self.rec.reset_time()
+        log_vio(self.rec, result, self.cal, self.T_sI, self.ground_truth)
+
+
+@contextmanager
+def vio_recording(
     options: RerunOptions,
-    result: VioResult,
     cal: GimbalCalibration,
     T_sI: FloatArray,
+    mode: str,
     bag: str | Path,
     ground_truth: str | Path | None = None,
-) -> None:
-    """Write (and/or show) the recording of a VIO run; the ground truth is ``ground_truth`` (TUM file or
-    bag) or, without it, the bag's own ``/ground_truth/pose`` topic when present."""
+) -> Iterator[VioRecorder | None]:
+    """The recording of a VIO run (None when ``options`` want none): pass the recorder as the observer of
+    :func:`~dcc_fg.vio.pipeline.run_vio_bag`, then call its :meth:`~VioRecorder.finish` with the result
+    inside the block; the file is complete when the block ends (:func:`recording`: nothing is left on an
+    error). ``T_sI`` the IMU -> static camera mount (4x4); ``mode`` the smoother's; the ground truth is
+    ``ground_truth`` (TUM file or bag) or, without it, the bag's own ``/ground_truth/pose`` topic when
+    present, read before the run."""
     if not options.wanted:
+        yield None
         return
     gt = find_ground_truth(bag, ground_truth)
-    with recording(options, vio_blueprint()) as rec:
-        log_vio(rec, result, cal, T_sI, gt)
+    gimbal = shows_gimbal(mode, cal)
+    with recording(options, vio_blueprint(gimbal)) as rec:
+        yield VioRecorder(rec, cal, T_sI, gimbal, gt)

@@ -5,6 +5,12 @@ Frames as in ``docs/architecture.md``: ``W`` the estimate's world (gravity along
 keyframe's estimated joint angles. The ground truth lives in its own world frame; it is brought into
 ``W`` by the inverse of the alignment the evaluation uses (:func:`dcc_fg.vio.evaluate.align_trajectory`:
 SE(3), or Sim(3) for ``mono`` runs), so the estimate is shown as it was computed and the truth moves.
+
+Per frame (:class:`~dcc_fg.vio.pipeline.FrameEvent`): each camera's tracked features in pixels of its
+distorted image (the front end's normalized undistorted coordinates ``[x, y, 1]`` projected through the
+camera model), each with a class (:data:`TRACK_CLASSES`: static / gimbal camera, matched across the two
+cameras or not, rejected by stage two), and at keyframes the window's landmarks in W with a class
+(:data:`LANDMARK_CLASSES`: seen by the static camera in that frame, only by the gimbal camera, or by neither).
 """
 
 from __future__ import annotations
@@ -16,13 +22,34 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
+from dcc_fg.data.vio import TrackFrame
 from dcc_fg.io.bags import bag_reader, is_bag
 from dcc_fg.vio.backend import VioResult
 from dcc_fg.vio.evaluate import NS, POSE_TOPIC, GroundTruth, align_trajectory, load_ground_truth
+from factors.camera import CameraModel
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
+ClassArray = NDArray[np.uint16]
 log = logging.getLogger(__name__)
+
+#: Class ids of a tracked feature (the recording's annotation context gives each its label and colour).
+STATIC_ONLY, STATIC_MATCHED, GIMBAL_ONLY, GIMBAL_MATCHED, GIMBAL_REJECTED = range(5)
+#: Class ids of a window landmark at a keyframe.
+LANDMARK_STATIC, LANDMARK_GIMBAL_ONLY, LANDMARK_UNSEEN = range(5, 8)
+#: Label and colour (RGB) of every class id.
+TRACK_CLASSES: dict[int, tuple[str, tuple[int, int, int]]] = {
+    STATIC_ONLY: ("static camera, not matched in the gimbal camera", (30, 140, 255)),
+    STATIC_MATCHED: ("static camera, matched in the gimbal camera (shared id)", (40, 220, 40)),
+    GIMBAL_ONLY: ("gimbal camera, not matched in the static camera", (255, 160, 0)),
+    GIMBAL_MATCHED: ("gimbal camera, matched in the static camera (shared id)", (40, 220, 40)),
+    GIMBAL_REJECTED: ("gimbal camera, rejected by stage two (outlier)", (240, 40, 40)),
+}
+LANDMARK_CLASSES: dict[int, tuple[str, tuple[int, int, int]]] = {
+    LANDMARK_STATIC: ("landmark seen by the static camera in this keyframe", (30, 140, 255)),
+    LANDMARK_GIMBAL_ONLY: ("landmark seen only by the gimbal camera in this keyframe", (255, 160, 0)),
+    LANDMARK_UNSEEN: ("landmark of the window not seen in this keyframe", (150, 150, 150)),
+}
 
 
 def bag_has_ground_truth(bag: str | Path) -> bool:
@@ -110,3 +137,59 @@ def segment_slices(result: VioResult) -> list[slice]:
     cuts = [int(np.searchsorted(t, s)) for s in starts if 0 < np.searchsorted(t, s) < len(t)]
     bounds = [0, *sorted(set(cuts)), len(t)]
     return [slice(a, b) for a, b in zip(bounds[:-1], bounds[1:], strict=True) if b > a]
+
+
+@dataclass(frozen=True)
+class CameraTracks:
+    """One camera's tracked features in one frame: ``ids`` (N,) track ids, ``uv`` (N, 2) pixels of the
+    distorted image, ``classes`` (N,) class ids (:data:`TRACK_CLASSES`)."""
+
+    ids: IntArray
+    uv: FloatArray
+    classes: ClassArray
+
+
+def pixels(camera: CameraModel, xy: FloatArray) -> FloatArray:
+    """Normalized undistorted image coordinates (N, 2) -> pixels (N, 2) of the distorted image: the
+    camera's projection of the camera-frame points ``[x, y, 1]``."""
+    xy = np.asarray(xy, dtype=float).reshape(-1, 2)
+    uv, _ = camera.project(np.column_stack([xy, np.ones(len(xy))]), jacobian=False)
+    return uv
+
+
+def frame_tracks(
+    frame: TrackFrame, rejected_ids: IntArray, static_camera: CameraModel, dynamic_camera: CameraModel | None
+) -> tuple[CameraTracks, CameraTracks | None]:
+    """The static and (with ``dynamic_camera``) the gimbal camera's tracks of ``frame``. A track is
+    matched when its id is in both cameras' id lists; a gimbal track whose id is in ``rejected_ids``
+    (stage two, after this frame) is rejected, whether matched or not."""
+    s_ids = np.asarray(frame.static_ids, dtype=np.int64)
+    d_ids = np.asarray(frame.dynamic_ids, dtype=np.int64)
+    s_cls = np.where(np.isin(s_ids, d_ids), STATIC_MATCHED, STATIC_ONLY).astype(np.uint16)
+    static = CameraTracks(s_ids, pixels(static_camera, frame.static_xy), s_cls)
+    if dynamic_camera is None:
+        return static, None
+    d_cls = np.where(np.isin(d_ids, s_ids), GIMBAL_MATCHED, GIMBAL_ONLY).astype(np.uint16)
+    d_cls[np.isin(d_ids, np.asarray(rejected_ids, dtype=np.int64))] = GIMBAL_REJECTED
+    return static, CameraTracks(d_ids, pixels(dynamic_camera, frame.dynamic_xy), d_cls)
+
+
+@dataclass(frozen=True)
+class WindowLandmarks:
+    """The sliding window's landmarks at a keyframe: ``ids`` (N,) track ids, ``points`` (N, 3) in W
+    (metres), ``classes`` (N,) class ids (:data:`LANDMARK_CLASSES`)."""
+
+    ids: IntArray
+    points: FloatArray
+    classes: ClassArray
+
+
+def window_landmarks(landmarks: dict[int, FloatArray], frame: TrackFrame) -> WindowLandmarks:
+    """``landmarks`` (track id -> point in W, m) with their class in ``frame``: seen by the static camera,
+    else only by the gimbal camera, else by neither (a window landmark observed at earlier keyframes)."""
+    ids = np.fromiter(landmarks.keys(), dtype=np.int64, count=len(landmarks))
+    points = np.array(list(landmarks.values()), dtype=float).reshape(-1, 3)
+    classes = np.full(len(ids), LANDMARK_UNSEEN, dtype=np.uint16)
+    classes[np.isin(ids, np.asarray(frame.dynamic_ids, dtype=np.int64))] = LANDMARK_GIMBAL_ONLY
+    classes[np.isin(ids, np.asarray(frame.static_ids, dtype=np.int64))] = LANDMARK_STATIC
+    return WindowLandmarks(ids, points, classes)
