@@ -1,5 +1,5 @@
 """Command-line interface: ``dcc-fg demo | calibrate | validate | intrinsics | simulate | vio | evaluate | config |
-export``.
+export | batch``.
 
 This module only assembles the subcommands of :mod:`dcc_fg.commands`, sets up logging
 (``-v`` / ``-q``) and turns failures into messages without traceback. Exit codes:
@@ -26,7 +26,7 @@ import sys
 import numpy as np
 import yaml
 
-from dcc_fg.commands import calibrate, common, config, demo, evaluate, export, intrinsics, simulate, vio
+from dcc_fg.commands import batch, calibrate, common, config, demo, evaluate, export, intrinsics, simulate, vio
 from dcc_fg.util.errors import NUMERICAL_ERRORS, EstimatorError
 from dcc_fg.util.health import EXIT_UNHEALTHY, UnhealthyResultError
 from dcc_fg.util.logs import configure_logging
@@ -72,6 +72,7 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_parser(sub, parent)
     config.add_parser(sub, parent)
     export.add_parser(sub, parent)
+    batch.add_parser(sub, parent)
     return p
 
 

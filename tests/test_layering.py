@@ -47,7 +47,7 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
     ),
     ("studies: estimators on simulated data", ("dcc_fg.studies",)),
     ("report/plots/export", ("dcc_fg.report", "dcc_fg.plots", "dcc_fg.export", "dcc_fg.viz")),
-    ("commands", ("dcc_fg.commands", "dcc_fg.demo")),
+    ("commands", ("dcc_fg.commands", "dcc_fg.demo", "dcc_fg.batch")),
     ("cli", ("dcc_fg.cli", "dcc_fg.__main__")),
     ("package root: public API", ("dcc_fg",)),
 ]
