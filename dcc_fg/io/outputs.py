@@ -53,25 +53,27 @@ def plain(obj: Any) -> Any:
     return to_plain(obj, nonfinite_as_none=True)
 
 
+def _write_stamped_csv(
+    path: Path, column: str, stamps_ns: NDArray[np.int64], rows: NDArray[np.float64], fmt: str
+) -> None:
+    """``timestamp_ns,<column>_1,...,<column>_L``: one row per stamp (exact integer ns), values as ``fmt``."""
+    L = rows.shape[1] if rows.ndim == 2 else 0
+    buf = io.StringIO()
+    buf.write(",".join(["timestamp_ns"] + [f"{column}_{j + 1}" for j in range(L)]) + "\n")
+    for t, row in zip(stamps_ns, rows, strict=True):
+        buf.write(",".join([str(int(t))] + [format(x, fmt) for x in row]) + "\n")
+    write_text_atomic(Path(path), buf.getvalue())
+
+
 def write_joint_angles_csv(path: Path, timestamps_ns: NDArray[np.int64], thetas: NDArray[np.float64]) -> None:
     """``timestamp_ns,theta_1,...,theta_L`` (radians), one row per snapshot / keyframe."""
-    L = thetas.shape[1] if thetas.ndim == 2 else 0
-    buf = io.StringIO()
-    buf.write(",".join(["timestamp_ns"] + [f"theta_{j + 1}" for j in range(L)]) + "\n")
-    for t, th in zip(timestamps_ns, thetas, strict=True):
-        buf.write(",".join([str(int(t))] + [f"{x:.12g}" for x in th]) + "\n")
-    write_text_atomic(Path(path), buf.getvalue())
+    _write_stamped_csv(path, "theta", timestamps_ns, thetas, ".12g")
 
 
 def write_joint_sigmas_csv(path: Path, timestamps_ns: NDArray[np.int64], sigmas: NDArray[np.float64]) -> None:
     """``timestamp_ns,sigma_theta_1,...,sigma_theta_L`` (1-sigma in radians, ``nan`` where unknown), one
     row per keyframe, beside ``joint_angles.csv``."""
-    L = sigmas.shape[1] if sigmas.ndim == 2 else 0
-    buf = io.StringIO()
-    buf.write(",".join(["timestamp_ns"] + [f"sigma_theta_{j + 1}" for j in range(L)]) + "\n")
-    for t, sg in zip(timestamps_ns, sigmas, strict=True):
-        buf.write(",".join([str(int(t))] + [f"{x:.6g}" for x in sg]) + "\n")
-    write_text_atomic(Path(path), buf.getvalue())
+    _write_stamped_csv(path, "sigma_theta", timestamps_ns, sigmas, ".6g")
 
 
 def read_joint_angles_csv(path: Path) -> tuple[NDArray[np.int64], NDArray[np.float64]]:

@@ -10,7 +10,7 @@ import gtsam
 import numpy as np
 
 from dcc_fg.data.vio import ImuConfig, ImuSamples
-from dcc_fg.vio.backend.options import NS, InitialState
+from dcc_fg.vio.backend.options import NS, FloatArray, InitialState
 
 
 def validate_imu(imu: ImuSamples, source: str = "imu") -> None:
@@ -76,6 +76,17 @@ def preintegrate(
     return pim
 
 
+def up_to_z_rotation(up_I: FloatArray) -> FloatArray:
+    """``R_WI`` turning the body direction ``up_I`` (any length) onto +z of W by the least rotation
+    (yaw left as it is): gravity along -z of W when ``up_I`` is the specific force at rest."""
+    u = np.asarray(up_I, float) / np.linalg.norm(up_I)
+    ez = np.array([0.0, 0.0, 1.0])
+    axis = np.cross(u, ez)
+    s, c = np.linalg.norm(axis), float(np.dot(u, ez))
+    rotvec = np.zeros(3) if s < 1e-12 else axis / s * np.arctan2(s, c)
+    return gtsam.Rot3.Expmap(rotvec).matrix()
+
+
 def standstill_state(imu: ImuSamples, t0_ns: int, window: float, gravity: float, n_joints: int) -> InitialState:
     """Gravity-aligned initial state from IMU samples in [t0, t0 + window] (body assumed at rest).
 
@@ -92,11 +103,6 @@ def standstill_state(imu: ImuSamples, t0_ns: int, window: float, gravity: float,
             f"standstill initialization: the IMU is not at rest at the start (|mean acc| = {np.linalg.norm(f):.2f} "
             f"m/s^2, spread {spread:.2f}); pass an initial state instead"
         )
-    u = f / np.linalg.norm(f)
-    ez = np.array([0.0, 0.0, 1.0])
-    axis = np.cross(u, ez)
-    s, c = np.linalg.norm(axis), float(np.dot(u, ez))
-    rotvec = np.zeros(3) if s < 1e-12 else axis / s * np.arctan2(s, c)
     T = np.eye(4)
-    T[:3, :3] = gtsam.Rot3.Expmap(rotvec).matrix()
+    T[:3, :3] = up_to_z_rotation(f)
     return InitialState(t0_ns, T, np.zeros(3), np.zeros(3), imu.gyro[sel].mean(axis=0), np.zeros(n_joints))

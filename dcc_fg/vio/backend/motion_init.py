@@ -36,9 +36,10 @@ from scipy.optimize import least_squares
 from scipy.sparse import lil_matrix
 
 from dcc_fg.data.vio import ImuConfig, ImuSamples, TrackFrame
-from dcc_fg.vio.backend.imu import standstill_state
+from dcc_fg.vio.backend.imu import standstill_state, up_to_z_rotation
 from dcc_fg.vio.backend.options import NS, FloatArray, InitialState, VioOptions
 from dcc_fg.vio.backend.window import AnchorSigmas
+from factors.chain import skew
 
 log = logging.getLogger(__name__)
 
@@ -74,20 +75,6 @@ class Alignment:
     residual_sigmas: float
     gravity_sigma: float
     velocity_sigma: float
-
-
-def _skew(u: FloatArray) -> FloatArray:
-    return np.array([[0.0, -u[2], u[1]], [u[2], 0.0, -u[0]], [-u[1], u[0], 0.0]])
-
-
-def _gravity_aligned_rotation(g_b0: FloatArray) -> FloatArray:
-    """``R_Wb0`` taking the direction of ``g_b0`` onto -z of W with the least rotation (yaw of b0 kept)."""
-    u = -np.asarray(g_b0, float) / np.linalg.norm(g_b0)  # "up" in b0
-    ez = np.array([0.0, 0.0, 1.0])
-    axis = np.cross(u, ez)
-    s, c = np.linalg.norm(axis), float(np.dot(u, ez))
-    rotvec = np.zeros(3) if s < 1e-12 else axis / s * np.arctan2(s, c)
-    return gtsam.Rot3.Expmap(rotvec).matrix()
 
 
 def _tangent_basis(d: FloatArray) -> FloatArray:
@@ -162,7 +149,7 @@ def align_in_motion(
     rows: list[tuple[int, int, FloatArray, FloatArray]] = []  # (track column, frame, M, rhs)
     for col, obs in enumerate(tracks.values()):
         for j, xy in obs:
-            M = _skew(np.array([xy[0], xy[1], 1.0])) @ (R[j] @ R_Is).T
+            M = skew(np.array([xy[0], xy[1], 1.0])) @ (R[j] @ R_Is).T
             rows.append((col, j, M, M @ (dP[j] + R[j] @ c_I)))
     n = 6 + 3 * F
     A = np.zeros((3 * len(rows), n))
@@ -237,7 +224,7 @@ def align_in_motion(
     velocity_sigma = float(np.sqrt(np.linalg.eigvalsh(cov[:3, :3]).max()))
     if not np.isfinite(rms) or rms > MAX_RESIDUAL_SIGMAS:
         return None, f"the aligned tracks reproject at {rms:.1f} pixel sigmas (> {MAX_RESIDUAL_SIGMAS:g})"
-    R_Wb0 = _gravity_aligned_rotation(g)
+    R_Wb0 = up_to_z_rotation(-g)  # W with gravity along -z, the yaw of b0
     T = np.eye(4)
     T[:3, :3] = R_Wb0
     state = InitialState(t0, T, R_Wb0 @ v0, np.asarray(b_a, float), np.zeros(3), np.zeros(0))
