@@ -39,7 +39,7 @@ from dcc_fg.vio.evaluate import GroundTruth
 from dcc_fg.vio.pipeline import FrameEvent, run_vio_bag
 from dcc_fg.viz import scene
 from dcc_fg.viz import vio_scene as vs
-from dcc_fg.viz.images import nearest_within
+from dcc_fg.viz.images import display_image, topic_images
 from dcc_fg.viz.vio_scene import segment_slices, truth_in_estimate_frame
 from factors import chain
 from factors.camera import CameraModel
@@ -223,13 +223,6 @@ def test_reprojected_corners_are_the_residuals() -> None:
     assert names == ["static_camera", "gimbal_base", "link_1", "end_effector", "gimbal_camera"]
 
 
-def test_nearest_within() -> None:
-    available = np.array([10, 20, 30], dtype=np.int64)
-    wanted = np.array([9, 14, 16, 26, 31, 100], dtype=np.int64)
-    assert nearest_within(available, wanted, 4).tolist() == [0, 0, 1, 2, 2, -1]
-    assert nearest_within(np.zeros(0, dtype=np.int64), wanted, 4).tolist() == [-1] * 6
-
-
 # ---------------------------------------------------------------------------------------------- VIO
 
 
@@ -304,11 +297,47 @@ def test_vio_recording_matches_the_outputs(flight: FlightBag, tmp_path: Path, mo
         assert len(kf) >= K - 2 and np.sqrt(np.mean(err**2)) < 1e-2  # the estimate follows the truth
     gimbal = rec["/world/body/static_camera/gimbal_camera"]["rows"]
     assert len(gimbal) == K
+    _check_keyframe_images(rec, flight, t_tum)
     # the truth, brought into the estimate's world, lies along the estimate (a healthy run: < 1 % of 40 m)
     truth_p = np.array(rec["/world/trajectory/truth"]["static"]["LineStrips3D:strips"][0])
     est_p = np.concatenate([np.array(s) for s in rec["/world/trajectory/estimate"]["static"]["LineStrips3D:strips"]])
     assert np.abs(truth_p[0] - est_p[0]).max() < 0.5 and len(truth_p) >= K - 2
     _check_tracks_and_landmarks(rec, events, out, flight, t_tum)
+
+
+def _check_keyframe_images(rec: dict[str, dict[str, Any]], flight: FlightBag, t_kf: np.ndarray) -> None:
+    """Both cameras' images at every keyframe (the default ``--rerun-images keyframes``), on the keyframe
+    timeline, equal (up to JPEG) to the bag's image with the keyframe's stamp."""
+    for entity, topic in ((rerun_log.STATIC_IMAGE, "/cam0/image_raw"), (rerun_log.GIMBAL_IMAGE, "/cam1/image_raw")):
+        rows = [r for r in rec["/" + entity]["rows"] if r.get("EncodedImage:blob") is not None]
+        assert [r["keyframe"] for r in rows] == list(range(len(t_kf)))
+        assert [r["time"] for r in rows] == [int(x) for x in t_kf]
+        k = len(rows) // 2
+        shown = cv2.imdecode(np.frombuffer(bytes(rows[k]["EncodedImage:blob"][0]), np.uint8), cv2.IMREAD_UNCHANGED)
+        original, following = topic_images(flight.bag, topic, np.array([int(t_kf[k]), int(t_kf[k + 1])]), 0)
+        assert original is not None and following is not None and shown.shape[:2] == original.shape[:2]
+        err = [np.mean(np.abs(shown.astype(float) - display_image(im).astype(float))) for im in (original, following)]
+        assert err[0] < 4.0 and err[0] < 0.5 * err[1], err  # its own frame up to JPEG, not the next keyframe's
+
+
+def test_vio_recording_of_every_frame_image(flight: FlightBag, tmp_path: Path) -> None:
+    """``--rerun-images all``: one image per processed frame and camera; ``none``: no image."""
+    base = ["vio", str(flight.bag), "--calibration", str(flight.calibration), "-q", "--frontend", "inline"]
+    counts = {}
+    for choice in ("all", "none"):
+        rrd, out = tmp_path / f"{choice}.rrd", tmp_path / choice
+        assert main([*base, "--out", str(out), "--rerun", str(rrd), "--rerun-images", choice]) == 0
+        rec = load_rrd(rrd)
+        frames = json.loads((out / "summary.json").read_text())["frames"]
+        counts[choice] = [
+            sum(r.get("EncodedImage:blob") is not None for r in rec.get("/" + e, {}).get("rows", []))
+            for e in (rerun_log.STATIC_IMAGE, rerun_log.GIMBAL_IMAGE)
+        ]
+        static_frames = [r["frame"] for r in rec["/" + rerun_log.STATIC_TRACKS]["rows"]]
+        if choice == "all":
+            rows = [r for r in rec["/" + rerun_log.STATIC_IMAGE]["rows"] if r.get("EncodedImage:blob") is not None]
+            assert [r["frame"] for r in rows] == static_frames
+    assert counts["all"] == [frames, frames] and counts["none"] == [0, 0]
 
 
 def _check_tracks_and_landmarks(

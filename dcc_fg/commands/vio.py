@@ -18,7 +18,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import sys
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -36,7 +36,7 @@ from dcc_fg.vio.backend import VioOptions, write_vio_outputs
 from dcc_fg.vio.frontend import FrontendConfig
 from dcc_fg.vio.health import vio_health
 from dcc_fg.vio.pipeline import BagTopics, PipelineOptions, run_vio_bag
-from dcc_fg.viz.rerun_log import RerunOptions, vio_recording
+from dcc_fg.viz.rerun_log import VIO_IMAGE_CHOICES, RerunOptions, vio_recording
 
 #: Kalibr imu.yaml keys -> ImuConfig fields
 KALIBR_IMU_KEYS = {
@@ -328,7 +328,7 @@ def run_vio(
     if not bag.exists():
         raise FileNotFoundError(f"{bag}: bag not found")
     outputs = OutputSet(out, "vio", inputs.by_option(config_file))
-    cal = load_calibration(cal_path)
+    cal = load_calibration(cal_path).require_two_cameras("VIO", allow_subset=True)
     imu = imu_config(inputs)
     options = smoother_options(config, cal, cal_path, imu)
     mono = options.mode == "mono"
@@ -343,7 +343,7 @@ def run_vio(
     )
     with outputs:
         bar = ProgressBar(progress)
-        recording = vio_recording(rerun or RerunOptions(), cal, imu.T_sI, options.mode, bag, rerun_ground_truth)
+        recording = vio_recording(rerun or RerunOptions(), cal, imu.T_sI, options.mode, bag, rerun_ground_truth, topics)
         with recording as recorder:
             try:
                 result, run = run_vio_bag(
@@ -390,7 +390,7 @@ def print_vio_summary(result: Any, out: Path, n_joints: int) -> None:
 
 def vio_command(args: argparse.Namespace) -> int:
     """The ``dcc-fg vio`` subcommand (see :func:`add_parser`)."""
-    rerun = common.rerun_options(args)
+    rerun = replace(common.rerun_options(args), vio_images=args.rerun_images)
     config = common.effective_config(args, VioConfig, "vio")
     inputs = VioInputs(args.bag, args.calibration, args.imu_yaml, args.camchain)
     source = args.config or "command line"
@@ -423,6 +423,9 @@ def add_parser(sub: Any, parent: argparse.ArgumentParser) -> None:
     v.add_argument("--rerun-ground-truth", metavar="GT", help="ground truth shown in the recording (TUM file, body "
                    "frame, or a bag with /ground_truth/pose and /ground_truth/joints), aligned as dcc-fg evaluate "
                    "aligns; default: the bag's own /ground_truth/pose topic when it has one")  # fmt: skip
+    v.add_argument("--rerun-images", choices=VIO_IMAGE_CHOICES, default="keyframes", help="camera images in the "
+                   "recording, under the tracks: of the keyframes (default; between keyframes the last keyframe's "
+                   "image stays while the tracks move on), of all frames (a larger file), or none")  # fmt: skip
 
 
 def add_vio_flags(v: argparse.ArgumentParser) -> None:

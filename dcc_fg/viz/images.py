@@ -24,6 +24,7 @@ from dcc_fg.io.bags import bag_messages, decode_image, image_topic_connections, 
 from dcc_fg.io.camchain import CamchainEntry, load_camchain
 from dcc_fg.io.folders import DYNAMIC_DIR, IMAGE_SUFFIXES, STATIC_DIR, list_timestamped, read_image
 from dcc_fg.io.layout import detect_layout
+from dcc_fg.io.pairing import nearest_within
 
 log = logging.getLogger(__name__)
 
@@ -62,22 +63,6 @@ class ImageSource:
         return ImageRequest({STATIC_DIR: t, DYNAMIC_DIR: t + int(self.dynamic_shift_ns)}, self.tolerance_ns)
 
 
-def nearest_within(available: NDArray[np.int64], wanted: NDArray[np.int64], tolerance_ns: int) -> NDArray[np.int64]:
-    """For each wanted stamp the index of the nearest available stamp (sorted, ns), or -1 when the
-    nearest is more than ``tolerance_ns`` away."""
-    available = np.asarray(available, dtype=np.int64)
-    wanted = np.asarray(wanted, dtype=np.int64)
-    out = np.full(wanted.shape, -1, dtype=np.int64)
-    if available.size == 0:
-        return out
-    right = np.clip(np.searchsorted(available, wanted), 0, available.size - 1)
-    left = np.clip(right - 1, 0, available.size - 1)
-    pick = np.where(np.abs(available[left] - wanted) <= np.abs(available[right] - wanted), left, right)
-    ok = np.abs(available[pick] - wanted) <= tolerance_ns
-    out[ok] = pick[ok]
-    return out
-
-
 def _folder_images(root: Path, request: ImageRequest) -> dict[str, list[Image | None]]:
     """Per camera, the image of each wanted stamp (None: none near it) from an image folder; only the
     files needed are read."""
@@ -85,7 +70,7 @@ def _folder_images(root: Path, request: ImageRequest) -> dict[str, list[Image | 
     for cam in CAMERAS:
         files = list_timestamped(root / cam, IMAGE_SUFFIXES)
         stamps = np.array(sorted(files), dtype=np.int64)
-        idx = nearest_within(stamps, request.stamps_ns[cam], request.tolerance_ns[cam])
+        idx = nearest_within(request.stamps_ns[cam], stamps, request.tolerance_ns[cam])
         out[cam] = [read_image(files[int(stamps[i])]) if i >= 0 else None for i in idx]
     return out
 
@@ -98,29 +83,37 @@ def _topics(camchain: str | Path | Mapping[str, CamchainEntry] | None) -> dict[s
     return {cam: entries[cam].rostopic for cam in CAMERAS if cam in entries and entries[cam].rostopic}  # type: ignore[misc]
 
 
+def topic_images(path: Path, topic: str, wanted_ns: NDArray[np.int64], tolerance_ns: int) -> list[Image | None]:
+    """The image of each wanted stamp (ns, the camera's clock) on one image ``topic`` of the bag
+    ``path``: the frame whose stamp is nearest, None where none lies within ``tolerance_ns``. One pass
+    over the topic; a message is decoded only when it is the nearest so far to a wanted stamp."""
+    wanted = np.asarray(wanted_ns, dtype=np.int64)
+    order = np.argsort(wanted, kind="stable")
+    sorted_wanted = wanted[order]
+    out: list[Image | None] = [None] * len(wanted)
+    best = np.full(len(wanted), tolerance_ns + 1, dtype=np.int64)  # stamp distance of the image held
+    if not len(wanted):
+        return out
+    with open_bag(path) as reader:
+        conns = image_topic_connections(reader, path, topic)
+        for conn, t, msg in bag_messages(path, reader, conns):
+            stamp = stamp_ns(msg, t)
+            lo = int(np.searchsorted(sorted_wanted, stamp - tolerance_ns, side="left"))
+            hi = int(np.searchsorted(sorted_wanted, stamp + tolerance_ns, side="right"))
+            targets = [int(k) for k in order[lo:hi] if abs(int(wanted[k]) - stamp) < best[k]]
+            if not targets:
+                continue
+            image = decode_image(msg, conn.msgtype, f"{path}: topic {topic} at {stamp} ns")
+            for k in targets:
+                out[k], best[k] = image, abs(int(wanted[k]) - stamp)
+    return out
+
+
 def _bag_images(path: Path, topics: dict[str, str], request: ImageRequest) -> dict[str, list[Image | None]]:
-    """Per camera, the image of each wanted stamp (None: none near it) from a bag: the stamps are read
-    first, then only the messages nearest to the wanted stamps are decoded."""
+    """Per camera, the image of each wanted stamp (None: none near it) from a bag (:func:`topic_images`)."""
     out: dict[str, list[Image | None]] = {cam: [None] * len(request.stamps_ns[cam]) for cam in CAMERAS}
     for cam, topic in topics.items():
-        wanted = request.stamps_ns[cam]
-        with open_bag(path) as reader:
-            conns = image_topic_connections(reader, path, topic)
-            stamps = [stamp_ns(msg, t) for _, t, msg in bag_messages(path, reader, conns)]
-        order = np.argsort(stamps, kind="stable")
-        sorted_stamps = np.asarray(stamps, dtype=np.int64)[order]
-        idx = nearest_within(sorted_stamps, wanted, request.tolerance_ns[cam])
-        needed: dict[int, list[int]] = {}
-        for k, i in enumerate(idx):
-            if i >= 0:
-                needed.setdefault(int(order[i]), []).append(k)
-        with open_bag(path) as reader:
-            conns = image_topic_connections(reader, path, topic)
-            for n, (conn, t, msg) in enumerate(bag_messages(path, reader, conns)):
-                if n in needed:
-                    image = decode_image(msg, conn.msgtype, f"{path}: topic {topic} at {stamp_ns(msg, t)} ns")
-                    for k in needed[n]:
-                        out[cam][k] = image
+        out[cam] = topic_images(path, topic, request.stamps_ns[cam], request.tolerance_ns[cam])
     return out
 
 

@@ -61,9 +61,9 @@ from dcc_fg.data import CalibrationDataset
 from dcc_fg.model import GimbalCalibration
 from dcc_fg.vio.backend import VioResult
 from dcc_fg.vio.evaluate import GroundTruth
-from dcc_fg.vio.pipeline import FrameEvent
+from dcc_fg.vio.pipeline import BagTopics, FrameEvent
 from dcc_fg.viz import scene
-from dcc_fg.viz.images import DYNAMIC_DIR, STATIC_DIR, ImageSource, calibration_images, jpeg_bytes
+from dcc_fg.viz.images import DYNAMIC_DIR, STATIC_DIR, ImageSource, calibration_images, jpeg_bytes, topic_images
 from dcc_fg.viz.vio_scene import (
     LANDMARK_CLASSES,
     TRACK_CLASSES,
@@ -95,6 +95,8 @@ DETECTED, REPROJECTED, BORDER = (40, 220, 40), (240, 40, 40), (150, 150, 150)
 TRUTH, ESTIMATE = (240, 160, 0), (30, 140, 255)
 #: JPEG quality of the logged camera images.
 JPEG_QUALITY = 85
+#: Which camera images a VIO recording holds: those of the keyframes (default), of all frames, none.
+VIO_IMAGE_CHOICES = ("keyframes", "all", "none")
 #: VIO entities: the two cameras' pinholes (their tracks are ``<camera>/tracks``) and the window's landmarks.
 STATIC_IMAGE = "world/body/static_camera/image"
 GIMBAL_IMAGE = "world/body/static_camera/gimbal_camera/image"
@@ -112,10 +114,12 @@ class RerunUnavailableError(ValueError):
 @dataclass(frozen=True)
 class RerunOptions:
     """Where a run's recording goes: ``path`` a ``.rrd`` file (None: not saved), ``spawn`` also starts
-    the Rerun viewer and streams to it."""
+    the Rerun viewer and streams to it; ``vio_images``: which camera images a VIO recording holds
+    (``keyframes``, ``all`` frames or ``none``; see :data:`VIO_IMAGE_CHOICES`)."""
 
     path: Path | None = None
     spawn: bool = False
+    vio_images: str = "keyframes"
 
     @property
     def wanted(self) -> bool:
@@ -387,7 +391,9 @@ def record_calibration(
 
 def vio_blueprint(gimbal: bool = True) -> Any:
     """Layout: the 3D scene with the trajectory and the landmarks, each camera's tracks (``gimbal``: the
-    gimbal camera's too), the joint angles and the motion over time; the ``time`` timeline selected."""
+    gimbal camera's too), the joint angles and the motion over time; the ``time`` timeline selected and
+    following the newest data (a finished recording opens at its last frame, the whole trajectory shown;
+    a streamed one follows the run)."""
     cameras = [rrb.Spatial2DView(origin=STATIC_IMAGE, name="static camera tracks")]
     if gimbal:
         cameras.append(rrb.Spatial2DView(origin=GIMBAL_IMAGE, name="gimbal camera tracks"))
@@ -406,7 +412,7 @@ def vio_blueprint(gimbal: bool = True) -> Any:
             ),
             column_shares=[3, 2],
         ),
-        rrb.TimePanel(timeline="time"),
+        rrb.TimePanel(timeline="time", play_state="following"),
     )
 
 
@@ -503,17 +509,37 @@ class VioRecorder:
     Per frame one ``Points2D`` per camera (an empty one when the camera sees nothing, so a frame never
     shows the previous frame's tracks) and at keyframes one ``Points3D`` of the window's landmarks; the
     ``keyframe`` timeline counts the frames that became keyframes, which are the result's keyframes in
-    order. ``gimbal``: log the gimbal camera's tracks (:func:`shows_gimbal`)."""
+    order. ``gimbal``: log the gimbal camera's tracks (:func:`shows_gimbal`).
+
+    Camera images (``images``, :data:`VIO_IMAGE_CHOICES`): the stamps of the frames to show are kept while
+    the run goes (the front end decodes the images in its own process and does not pass them on); after
+    the last frame the images with exactly those stamps are read again from ``bag`` (``topics``) and
+    logged as JPEG on the frames' ``frame`` / ``time`` (/ ``keyframe``) timelines, under the tracks. With
+    ``keyframes`` the image between two keyframes is the last keyframe's while the tracks move on."""
 
     def __init__(
-        self, rec: Any, cal: GimbalCalibration, T_sI: FloatArray, gimbal: bool, ground_truth: GroundTruth | None
+        self,
+        rec: Any,
+        cal: GimbalCalibration,
+        T_sI: FloatArray,
+        gimbal: bool,
+        ground_truth: GroundTruth | None,
+        images: str = "none",
+        bag: Path | None = None,
+        topics: BagTopics | None = None,
     ) -> None:
         if cal.static_camera is None:
             raise ValueError("the calibration has no static camera model (cam0): the tracks cannot be drawn")
+        if images not in VIO_IMAGE_CHOICES:
+            raise ValueError(f"images must be one of {', '.join(VIO_IMAGE_CHOICES)}, got {images!r}")
         self.rec, self.cal, self.T_sI, self.ground_truth = rec, cal, np.asarray(T_sI, dtype=float), ground_truth
         self.static_camera = cal.static_camera
         self.dynamic_camera = cal.dynamic_camera if gimbal else None
         self.keyframes = 0  # keyframes so far: the next keyframe's index
+        self.images = images if bag is not None and topics is not None else "none"
+        self.bag, self.topics = bag, topics
+        # frames whose images are shown: (frame index, keyframe index or -1, static stamp, gimbal stamp), ns
+        self.shown: list[tuple[int, int, int, int]] = []
         labels = {**TRACK_CLASSES, **LANDMARK_CLASSES}
         infos = [rr.AnnotationInfo(id=c, label=label, color=color) for c, (label, color) in labels.items()]
         rec.log("world", rr.AnnotationContext(infos), static=True)
@@ -532,6 +558,10 @@ class VioRecorder:
             self.keyframes += 1
         else:
             rec.disable_timeline("keyframe")
+        if self.images == "all" or (self.images == "keyframes" and event.keyframe):
+            gimbal_ns = frame.dynamic_timestamp_ns if frame.dynamic_timestamp_ns is not None else frame.timestamp_ns
+            kf = self.keyframes - 1 if event.keyframe else -1
+            self.shown.append((int(event.index), kf, int(frame.timestamp_ns), int(gimbal_ns)))
         static, gimbal = frame_tracks(frame, event.rejected_ids, self.static_camera, self.dynamic_camera)
         self._log_tracks(STATIC_TRACKS, static)
         if gimbal is not None:
@@ -545,9 +575,36 @@ class VioRecorder:
         self.rec.log(entity, rr.Points2D(tracks.uv, class_ids=tracks.classes), rr.AnyValues(track_id=tracks.ids))
 
     def finish(self, result: VioResult) -> None:
-        """Log the run's per-keyframe estimates (:func:`log_vio`) after its last frame."""
+        """Log the shown frames' camera images, then the run's per-keyframe estimates (:func:`log_vio`),
+        after its last frame."""
+        self._log_images()
         self.rec.reset_time()
         log_vio(self.rec, result, self.cal, self.T_sI, self.ground_truth)
+
+    def _log_images(self) -> None:
+        """The images of the frames in :attr:`shown`, read again from the bag by their exact stamps."""
+        if not self.shown or self.bag is None or self.topics is None:
+            return
+        cameras = [(STATIC_IMAGE, self.topics.static, [s for _, _, s, _ in self.shown])]
+        if self.dynamic_camera is not None and self.topics.dynamic is not None:
+            cameras.append((GIMBAL_IMAGE, self.topics.dynamic, [g for _, _, _, g in self.shown]))
+        for entity, topic, stamps in cameras:
+            try:  # exact stamps: a frame without a gimbal partner finds no gimbal image
+                found = topic_images(self.bag, topic, np.array(stamps, dtype=np.int64), 0)
+            except (ValueError, OSError) as exc:  # the bag was read once already: not expected
+                log.warning("rerun: the images of %s are not shown (%s); the tracks are", topic, exc)
+                continue
+            for k, image in enumerate(found):
+                if image is None:
+                    continue
+                index, kf, static_ns, _ = self.shown[k]
+                self.rec.set_time("frame", sequence=index)
+                self.rec.set_time("time", timestamp=_time_ns(static_ns))
+                if kf >= 0:
+                    self.rec.set_time("keyframe", sequence=kf)
+                else:
+                    self.rec.disable_timeline("keyframe")
+                self.rec.log(entity, rr.EncodedImage(contents=jpeg_bytes(image, JPEG_QUALITY), media_type="image/jpeg"))
 
 
 @contextmanager
@@ -558,17 +615,19 @@ def vio_recording(
     mode: str,
     bag: str | Path,
     ground_truth: str | Path | None = None,
+    topics: BagTopics | None = None,
 ) -> Iterator[VioRecorder | None]:
     """The recording of a VIO run (None when ``options`` want none): pass the recorder as the observer of
     :func:`~dcc_fg.vio.pipeline.run_vio_bag`, then call its :meth:`~VioRecorder.finish` with the result
     inside the block; the file is complete when the block ends (:func:`recording`: nothing is left on an
     error). ``T_sI`` the IMU -> static camera mount (4x4); ``mode`` the smoother's; the ground truth is
     ``ground_truth`` (TUM file or bag) or, without it, the bag's own ``/ground_truth/pose`` topic when
-    present, read before the run."""
+    present, read before the run. ``topics``: the bag's image topics, for the camera images
+    (``options.vio_images``; None: no images)."""
     if not options.wanted:
         yield None
         return
     gt = find_ground_truth(bag, ground_truth)
     gimbal = shows_gimbal(mode, cal)
     with recording(options, vio_blueprint(gimbal)) as rec:
-        yield VioRecorder(rec, cal, T_sI, gimbal, gt)
+        yield VioRecorder(rec, cal, T_sI, gimbal, gt, options.vio_images, Path(bag), topics)
