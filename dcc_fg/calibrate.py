@@ -493,11 +493,15 @@ def calibrate(
         options: see :class:`CalibrationOptions`.
 
     Raises:
-        ValueError: input that the solver cannot use (named in the message).
+        ValueError: input that the solver cannot use (named in the message); an N-camera cluster
+            (:meth:`GimbalCalibration.require_two_cameras`; ``validate`` uses cam0 and cam1 of one
+            whose cam1 is on a chain).
         dcc_fg.util.errors.EstimatorError: a numerical stage failed (PnP, IK, pose-level fit,
             Levenberg-Marquardt solve, observability, marginal covariances).
     """
     opt = options or CalibrationOptions()
+    validating = opt.mode == "validate"
+    initial.require_two_cameras("validation" if validating else "calibration", allow_subset=validating)
     L = initial.n_joints
     check_dataset(data, L, opt.mode)
     t_start = time.perf_counter()
@@ -521,7 +525,6 @@ def calibrate(
         observable[np.flatnonzero(~problem.fixed)[held.involved()]] = False
 
     cov = covariances_at(cov_graph, solved.values, problem, sol, observable, variance_factor, initial, opt)
-    validating = opt.mode == "validate"
     cal = GimbalCalibration(
         sol.kin,
         L,

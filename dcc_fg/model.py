@@ -12,10 +12,19 @@
     gauge_fixed: [names]            # parameters held at their initial values to fix the gauge
     cam0 / cam1                     # Kalibr camchain entries of the static / dynamic camera
     statistics: {...}               # reprojection errors, counts, solver info
+
+N-camera clusters use the ``cameras:`` / ``chains:`` form instead of the top-level ``joints``,
+``tau_s``, ``tau_d``, ``dh`` (schema in :mod:`dcc_fg.cluster`). A two-camera file is the cluster
+``cam0`` (static, the reference s) + ``cam1`` on chain ``gimbal``: ``T_cs('cam1', theta) == T_ds(theta)``.
+Either form loads into a :class:`GimbalCalibration` whose kinematics and intrinsics are those of
+cam0 and the cluster's first camera on a chain (the pair the two-camera estimators use); its
+:meth:`GimbalCalibration.cluster` / :meth:`GimbalCalibration.T_cs` give every camera, and code that
+handles two cameras only calls :meth:`GimbalCalibration.require_two_cameras` first.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -25,6 +34,17 @@ import numpy as np
 import yaml
 from numpy.typing import NDArray
 
+from dcc_fg.cluster import (
+    DH_NAMES,
+    LEGACY_CHAIN,
+    TAU_NAMES,
+    CameraCluster,
+    CameraMount,
+    ChainSpec,
+    Theta,
+    check_unique_keys,
+    warn_degrees,
+)
 from dcc_fg.io import validate
 from dcc_fg.io.camchain import camera_from_dict, camera_to_dict
 from dcc_fg.io.outputs import plain, write_text_atomic
@@ -35,20 +55,9 @@ FloatArray = NDArray[np.float64]
 
 log = logging.getLogger(__name__)
 
-TAU_NAMES = ("rx", "ry", "rz", "tx", "ty", "tz")
-DH_NAMES = ("d", "a", "alpha")
-
-
-def _warn_degrees(source: str, tau: dict[str, list[float]], dh: FloatArray) -> None:
-    """Log a warning for angles beyond one turn (rad): probably written in degrees."""
-    angles = {f"{k}[{i}]": v[i] for k, v in tau.items() for i in range(3)}
-    angles.update({f"dh[{i}][2] (alpha)": float(row[2]) for i, row in enumerate(dh)})
-    big = {k: v for k, v in angles.items() if abs(v) > validate.MAX_JOINT_ANGLE_RAD}
-    if big:
-        log.warning(
-            "%s: angle(s) beyond one turn: %s; angles are radians (degrees written by mistake?)",
-            source, ", ".join(f"{k} = {v:g}" for k, v in big.items()),
-        )  # fmt: skip
+#: Fields of the two-camera form that the ``cameras:`` / ``chains:`` form does not have.
+LEGACY_FIELDS = ("joints", "tau_s", "tau_d", "dh", "tau_s_std", "tau_d_std", "dh_std", "observable", "gauge_fixed",
+                 "held_by_prior", "cam0", "cam1")  # fmt: skip
 
 
 @dataclass
@@ -65,6 +74,10 @@ class GimbalCalibration:
         held_by_prior: directions the data did not determine, held by a weak prior
             (:meth:`dcc_fg.degeneracy.HeldDirections.report`: parameters, direction, held_at, prior_sigma).
         statistics: free-form results (reprojection errors, counts, ...).
+        layout: the N-camera cluster of a ``cameras:`` / ``chains:`` file (every camera and chain but
+            the primary pair, which :meth:`cluster` takes from the fields above); None for a two-camera
+            calibration (cam0 static, cam1 on chain ``gimbal``).
+        source: the file it was read from (for messages), None when built in code.
     """
 
     kin: FloatArray
@@ -76,6 +89,8 @@ class GimbalCalibration:
     gauge_fixed: NDArray[np.bool_] | None = None
     held_by_prior: list[dict[str, Any]] = field(default_factory=list)
     statistics: dict[str, Any] = field(default_factory=dict)
+    layout: CameraCluster | None = None
+    source: str | None = None
 
     def __post_init__(self) -> None:
         self.kin = np.asarray(self.kin, dtype=float).reshape(-1)
@@ -120,8 +135,124 @@ class GimbalCalibration:
             raise ValueError(f"theta must have {self.n_joints} joint angles, got {th.shape[0]}")
         return chain.T_ds(self.kin, th, self.n_joints)
 
+    # ---------------------------------------------------------------- N cameras
+    @staticmethod
+    def from_cluster(cluster: CameraCluster, **kwargs: Any) -> GimbalCalibration:
+        """The calibration of an N-camera ``cluster``: kinematics and intrinsics of cam0 and the first
+        camera on a chain (:attr:`CameraCluster.primary_gimbal_camera`), ``layout`` = the cluster."""
+        primary = cluster.camera(cluster.primary_gimbal_camera)
+        assert primary.chain is not None and primary.tau_d is not None
+        ch = cluster.chain(primary.chain)
+        kin_std = None
+        if ch.tau_s_std is not None or primary.tau_d_std is not None or ch.dh_std is not None:
+            nan6 = np.full(6, np.nan)
+            kin_std = np.concatenate([
+                nan6 if ch.tau_s_std is None else ch.tau_s_std,
+                nan6 if primary.tau_d_std is None else primary.tau_d_std,
+                np.full(3 * ch.n_joints, np.nan) if ch.dh_std is None else ch.dh_std.ravel(),
+            ])  # fmt: skip
+        kwargs.setdefault("kin_std", kin_std)
+        return GimbalCalibration.from_parts(
+            ch.tau_s, primary.tau_d, ch.dh, static_camera=cluster.cameras[0].camera, dynamic_camera=primary.camera,
+            layout=cluster, **kwargs,
+        )  # fmt: skip
+
+    def _std_part(self, part: slice, shape: tuple[int, ...]) -> FloatArray | None:
+        """``kin_std[part]`` reshaped, None where there is none or every entry is unknown (NaN)."""
+        if self.kin_std is None:
+            return None
+        values = np.asarray(self.kin_std, dtype=float)[part]
+        return None if values.size == 0 or not np.any(np.isfinite(values)) else values.reshape(shape)
+
+    def cluster(self) -> CameraCluster:
+        """Every camera and chain (:class:`dcc_fg.cluster.CameraCluster`); the primary pair (cam0 and the
+        first camera on a chain) from this calibration's ``kin``, ``kin_std`` and intrinsics.
+
+        A two-camera calibration is the cluster cam0 (static, the reference s) + cam1 on chain ``gimbal``.
+        """
+        L = self.n_joints
+        tau_s_std, tau_d_std = self._std_part(slice(0, 6), (6,)), self._std_part(slice(6, 12), (6,))
+        dh_std = self._std_part(slice(12, None), (L, 3))
+        if self.layout is None:
+            cameras = (
+                CameraMount("cam0", camera=self.static_camera),
+                CameraMount("cam1", LEGACY_CHAIN, tau_d=self.tau_d, camera=self.dynamic_camera, tau_d_std=tau_d_std),
+            )
+            return CameraCluster(cameras, (ChainSpec(LEGACY_CHAIN, self.tau_s, self.dh, tau_s_std, dh_std),))
+        primary = self.layout.camera(self.layout.primary_gimbal_camera)
+        mounts = []
+        for m in self.layout.cameras:
+            if m.name == "cam0":
+                m = dataclasses.replace(m, camera=self.static_camera)
+            elif m.name == primary.name:
+                m = dataclasses.replace(m, tau_d=self.tau_d, camera=self.dynamic_camera, tau_d_std=tau_d_std)
+            mounts.append(m)
+        chains = [
+            dataclasses.replace(c, tau_s=self.tau_s, dh=self.dh, tau_s_std=tau_s_std, dh_std=dh_std)
+            if c.name == primary.chain else c
+            for c in self.layout.chains
+        ]  # fmt: skip
+        return CameraCluster(tuple(mounts), tuple(chains))
+
+    @property
+    def camera_names(self) -> list[str]:
+        """``['cam0', 'cam1', ...]``: every camera of the cluster."""
+        return ["cam0", "cam1"] if self.layout is None else self.layout.camera_names
+
+    @property
+    def is_two_camera(self) -> bool:
+        """A static camera cam0 and one gimbal camera cam1 on one chain, nothing else."""
+        return self.layout is None or self.layout.is_two_camera
+
+    def T_cs(self, camera: str, theta: Theta = None) -> FloatArray:
+        """Reference static camera s (cam0) -> ``camera`` (4x4) at joint angles ``theta`` (rad).
+
+        ``theta``: a mapping chain name -> (L,) angles, or the flat vector of all joints (chains in
+        file order; for a two-camera calibration the usual (L,) ``theta``). Static cameras ignore it
+        (cam0: the identity); a two-camera calibration's ``T_cs('cam1', theta)`` is ``T_ds(theta)``
+        to the bit. See :meth:`dcc_fg.cluster.CameraCluster.T_cs`.
+        """
+        return self.cluster().T_cs(camera, theta)
+
+    def require_two_cameras(self, purpose: str, allow_subset: bool = False) -> GimbalCalibration:
+        """``self`` if ``purpose`` (``dcc-fg vio``, ``calibration``...) can use it: a two-camera cluster,
+        or with ``allow_subset`` a larger one whose cam1 is on a chain (then only cam0 and cam1 are used,
+        logged); else ValueError naming the file and saying that N-camera ``purpose`` is not supported yet.
+        """
+        if self.is_two_camera:
+            return self
+        assert self.layout is not None
+        layout = self.layout
+        where = self.source or "the calibration"
+        desc = ", ".join(f"{c.name} ({'static' if c.is_static else 'chain ' + c.mount})" for c in layout.cameras)
+        if allow_subset and not layout.cameras[1].is_static:
+            rest = [c.name for c in layout.cameras[2:]]
+            log.info(
+                "%s: %s uses cam0 (static) and cam1 (chain %s) only; %s not used (N-camera %s is not supported yet)",
+                where, purpose, layout.cameras[1].mount, ", ".join(rest), purpose,
+            )  # fmt: skip
+            return self
+        hint = (
+            " (a larger cluster can be used when its cam1 is on a chain; here cam1 is static)" if allow_subset else ""
+        )
+        raise ValueError(
+            f"{where}: a {len(layout.cameras)}-camera cluster ({desc}); {purpose} handles a static camera cam0 and one "
+            f"gimbal camera cam1 only: N-camera {purpose} is not supported yet{hint}"
+        )
+
     # ---------------------------------------------------------------- YAML
     def to_dict(self) -> dict[str, Any]:
+        """The file's mapping: the two-camera form, or the ``cameras:`` / ``chains:`` form of a cluster
+        read from one (with ``statistics``)."""
+        if self.layout is not None:
+            dropped = [k for k, v in (("observable", self.observable), ("gauge_fixed", self.gauge_fixed),
+                                      ("held_by_prior", self.held_by_prior or None)) if v is not None]  # fmt: skip
+            if dropped:
+                log.warning("%s: %s not written: the cameras/chains form has no such fields", self.source, dropped)
+            out_cluster = self.cluster().to_dict()
+            if self.statistics:
+                out_cluster["statistics"] = plain(self.statistics)
+            return out_cluster
         out: dict[str, Any] = {
             "joints": self.n_joints,
             "tau_s": [float(x) for x in self.tau_s],
@@ -161,6 +292,17 @@ class GimbalCalibration:
         """
         if not isinstance(d, dict):
             raise ValueError(f"{source}: expected a mapping with joints, tau_s, tau_d, dh")
+        if "cameras" in d or "chains" in d:
+            mixed = [k for k in LEGACY_FIELDS if k in d]
+            if mixed:
+                raise ValueError(
+                    f"{source}: {', '.join(mixed)}: not fields of the cameras:/chains: form (give either the "
+                    "two-camera fields joints, tau_s, tau_d, dh, cam0, cam1 or cameras: and chains:; per-chain values "
+                    "go under chains.NAME, per-camera ones under cameras.camN)"
+                )
+            cal = GimbalCalibration.from_cluster(CameraCluster.from_dict(d, source), source=source)
+            cal.statistics = _statistics(d, source)
+            return cal
         for key in ("joints", "tau_s", "tau_d", "dh"):
             if key not in d:
                 raise ValueError(f"{source}: missing field '{key}' (a gimbal file has joints, tau_s, tau_d, dh)")
@@ -178,7 +320,7 @@ class GimbalCalibration:
              for i, row in enumerate(dh_rows)],
             dtype=float,
         ).reshape(n, 3)  # fmt: skip
-        _warn_degrees(source, tau, dh)
+        warn_degrees(source, tau, dh)
         cal = GimbalCalibration.from_parts(tau["tau_s"], tau["tau_d"], dh)
         if any(k in d for k in ("tau_s_std", "tau_d_std", "dh_std")):
             std = validate.numbers(d.get("tau_s_std"), f"{source}: tau_s_std", 6, TAU_NAMES, allow_null=True,
@@ -215,10 +357,8 @@ class GimbalCalibration:
             cal.static_camera = camera_from_dict(d["cam0"], source, "cam0")
         if "cam1" in d:
             cal.dynamic_camera = camera_from_dict(d["cam1"], source, "cam1")
-        stats = d.get("statistics") or {}
-        if not isinstance(stats, dict):
-            raise ValueError(f"{source}: statistics must be a mapping, got {stats!r}")
-        cal.statistics = dict(stats)
+        cal.statistics = _statistics(d, source)
+        cal.source = source
         return cal
 
     def save(self, path: str | Path) -> None:
@@ -226,9 +366,19 @@ class GimbalCalibration:
         write_text_atomic(Path(path), yaml.safe_dump(self.to_dict(), sort_keys=False))
 
 
+def _statistics(d: dict[str, Any], source: str) -> dict[str, Any]:
+    stats = d.get("statistics") or {}
+    if not isinstance(stats, dict):
+        raise ValueError(f"{source}: statistics must be a mapping, got {stats!r}")
+    return dict(stats)
+
+
 def load_calibration(path: str | Path) -> GimbalCalibration:
-    """Read a ``calibration.yaml`` or ``gimbal.yaml`` file (every field checked, see
-    :meth:`GimbalCalibration.from_dict`; errors name the file and the field or YAML line)."""
+    """Read a ``calibration.yaml`` or ``gimbal.yaml`` file, two-camera or ``cameras:`` / ``chains:`` form
+    (every field checked, see :meth:`GimbalCalibration.from_dict`; errors name the file and the field or
+    YAML line; in the cluster form a key given twice is refused too)."""
     path = Path(path)
-    d = validate.load_yaml(path, "calibration", "joints, tau_s, tau_d, dh")
+    d = validate.load_yaml(path, "calibration", "joints, tau_s, tau_d, dh; or cameras:, chains:")
+    if isinstance(d, dict) and ("cameras" in d or "chains" in d):
+        check_unique_keys(validate.read_text(path, "calibration"), str(path))
     return GimbalCalibration.from_dict(d, str(path))

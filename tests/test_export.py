@@ -5,6 +5,9 @@
 * the Kalibr camchain (and camchain-imucam) reads back through :mod:`dcc_fg.io.camchain` with
   ``T_cn_cnm1 = T_ds(theta)`` to 1e-9;
 * the joint-state bags (ROS1 and ROS2) read back with rosbags: stamps, names, positions;
+* an N-camera cluster (cameras:/chains: form) as a URDF: yourdfpy's forward kinematics from cam0 to
+  every camera link is ``inv(T_cs(camera, theta))`` to 1e-9 (static stereo + gimbal camera, two cameras
+  on one chain, two chains), by the CLI too, and its joint-state bag has the URDF's joint names;
 * the CLI end to end on a calibration.yaml of ``dcc-fg calibrate`` (a small rendered data set);
 * bad input is refused with exit code 2 and a message naming the file, field or option.
 """
@@ -21,12 +24,21 @@ import yaml
 import yourdfpy
 
 from dcc_fg.cli import main
+from dcc_fg.cluster import CameraCluster, CameraMount, ChainSpec
 from dcc_fg.commands.vio import camchain_T_sI, camchain_time_offsets
 from dcc_fg.data.vio import ImuConfig
 from dcc_fg.export.joint_states import read_joint_angles, write_joint_state_bag
 from dcc_fg.export.kalibr import camchain_text, frozen_camchain, imucam_path, parse_joint_angles
-from dcc_fg.export.naming import cluster_names
-from dcc_fg.export.urdf import cluster_joints, observed_limits, relative_pose, rpy_from_rotation, urdf_text
+from dcc_fg.export.naming import cluster_names, layout_names
+from dcc_fg.export.urdf import (
+    cluster_joints,
+    layout_joints,
+    layout_urdf_text,
+    observed_limits,
+    relative_pose,
+    rpy_from_rotation,
+    urdf_text,
+)
 from dcc_fg.io.bag_writer import BagWriter
 from dcc_fg.io.bags import JOINT_STATE, open_bag
 from dcc_fg.io.camchain import load_camchain
@@ -132,6 +144,105 @@ def test_names_are_checked() -> None:
         cluster_names(2, joints=["a", "b c"])
     with pytest.raises(ValueError, match="both be named"):
         cluster_names(1, static_frame="same", gimbal_frame="same")
+
+
+# ------------------------------------------------------------------------------- N-camera clusters
+
+
+def _cluster(kind: str, seed: int) -> CameraCluster:
+    """Random mechanisms as clusters: ``stereo`` (cam0, cam1 static; cam2 on a 2-DOF gimbal), ``shared``
+    (cam1 and cam2 on one 2-DOF gimbal), ``two_chains`` (cam1 on a 3-DOF gimbal, cam2 static, cam3 on a
+    1-DOF chain)."""
+    rng = np.random.default_rng(seed)
+    a, b = _mechanism(3 if kind == "two_chains" else 2, seed), _mechanism(1, seed + 50)
+    T_static = chain.se3_from_tau(np.concatenate([rng.uniform(-0.5, 0.5, 3), rng.uniform(-0.2, 0.2, 3)]))
+    gimbal = ChainSpec("gimbal", a.tau_s, a.dh)
+    cam0 = CameraMount("cam0")
+    if kind == "stereo":
+        cams = [cam0, CameraMount("cam1", T_cs=T_static), CameraMount("cam2", "gimbal", tau_d=a.tau_d)]
+        return CameraCluster(tuple(cams), (gimbal,))
+    if kind == "shared":
+        cams = [cam0, CameraMount("cam1", "gimbal", tau_d=a.tau_d), CameraMount("cam2", "gimbal", tau_d=b.tau_d)]
+        return CameraCluster(tuple(cams), (gimbal,))
+    cams = [cam0, CameraMount("cam1", "gimbal", tau_d=a.tau_d), CameraMount("cam2", T_cs=T_static),
+            CameraMount("cam3", "roll", tau_d=b.tau_d)]  # fmt: skip
+    return CameraCluster(tuple(cams), (gimbal, ChainSpec("roll", b.tau_s, b.dh)))
+
+
+@pytest.mark.parametrize("kind", ["stereo", "shared", "two_chains"])
+@pytest.mark.parametrize("body_frames", [False, True])
+def test_cluster_urdf_forward_kinematics_is_T_cs(tmp_path: Path, kind: str, body_frames: bool) -> None:
+    rng = np.random.default_rng(len(kind))
+    for member in range(2):
+        cl = _cluster(kind, 20 + member)
+        names = layout_names(cl.camera_names, [(c.name, c.n_joints) for c in cl.chains], prefix="rig_")
+        J = cl.joint_count
+        limits = np.sort(rng.uniform(-3.0, 3.0, size=(J, 2)), axis=1)
+        path = tmp_path / f"{kind}_{member}.urdf"
+        path.write_text(layout_urdf_text(cl, names, limits, body_frames=body_frames))
+        robot = _load_urdf(path)
+        assert robot.validate()
+        assert robot.base_link == ("rig_cam0" if body_frames else "rig_cam0_optical")
+        expected = ["rig_gimbal_joint_1", "rig_gimbal_joint_2", "rig_gimbal_joint_3", "rig_roll_joint_1"]
+        assert (
+            robot.actuated_joint_names
+            == list(names.joints)
+            == (expected if kind == "two_chains" else ["rig_joint_1", "rig_joint_2"])
+        )
+        for k, name in enumerate(names.joints):
+            assert (robot.joint_map[name].limit.lower, robot.joint_map[name].limit.upper) == tuple(limits[k])
+        for _ in range(15):
+            theta = rng.uniform(-math.pi, math.pi, size=J)
+            for cam in cl.camera_names:
+                T = _urdf_T(robot, names.joints, theta, names.optical["cam0"], names.optical[cam])
+                np.testing.assert_allclose(T, chain.inv_se3(cl.T_cs(cam, theta)), rtol=0, atol=TOL)
+            for ch in cl.chains:  # each chain's b and e frames are in the tree
+                T_sb = _urdf_T(robot, names.joints, theta, names.optical["cam0"], names.base[ch.name])
+                np.testing.assert_allclose(T_sb, chain.inv_se3(ch.T_bs()), rtol=0, atol=TOL)
+        own = relative_pose(layout_joints(cl, names, limits, body_frames), {}, names.optical["cam0"],
+                            names.optical[cl.camera_names[-1]])  # fmt: skip
+        np.testing.assert_allclose(own, chain.inv_se3(cl.T_cs(cl.camera_names[-1], np.zeros(J))), atol=1e-12)
+
+
+def test_cli_cluster_urdf_and_joint_states(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    cl = _cluster("two_chains", 3)
+    cal_path = tmp_path / "cluster" / "calibration.yaml"
+    cal_path.parent.mkdir()
+    GimbalCalibration.from_cluster(cl).save(cal_path)
+    cal = load_calibration(cal_path)
+    rng = np.random.default_rng(9)
+    stamps = STAMP0 + np.arange(20, dtype=np.int64) * 50_000_000
+    theta = rng.uniform(-2.0, 2.0, size=(20, 4))
+    write_joint_angles_csv(cal_path.parent / "joint_angles.csv", stamps, theta)  # beside: the limits
+    _, theta = read_joint_angles_csv(cal_path.parent / "joint_angles.csv")
+    out = tmp_path / "cluster.urdf"
+    assert main(["export", str(cal_path), "--format", "urdf", "--out", str(out), "--body-frames", "-q"]) == 0
+    robot = _load_urdf(out)
+    joints = ("gimbal_joint_1", "gimbal_joint_2", "gimbal_joint_3", "roll_joint_1")
+    assert robot.base_link == "cam0" and tuple(robot.actuated_joint_names) == joints
+    limits = [(robot.joint_map[j].limit.lower, robot.joint_map[j].limit.upper) for j in joints]
+    np.testing.assert_array_equal(limits, observed_limits(theta))
+    for th in theta[:5]:
+        for cam in ("cam1", "cam2", "cam3"):
+            T = _urdf_T(robot, joints, th, "cam0_optical", f"{cam}_optical")
+            np.testing.assert_allclose(T, chain.inv_se3(cal.T_cs(cam, th)), rtol=0, atol=TOL)
+    # joint names given, the flat order; per-camera links cannot be renamed with --static-frame
+    argv = ["export", str(cal_path), "--format", "urdf", "--out", str(tmp_path / "n.urdf"), "-q"]
+    assert main([*argv, "--joint-names", "pan,tilt,roll,aux"]) == 0
+    assert _load_urdf(tmp_path / "n.urdf").actuated_joint_names == ["pan", "tilt", "roll", "aux"]
+    assert main([*argv, "--joint-names", "pan,tilt", "--force"]) == 2
+    assert "2 name(s) given, but" in capsys.readouterr().err
+    assert main([*argv, "--static-frame", "left", "--force"]) == 2
+    err = capsys.readouterr().err
+    assert str(cal_path) in err and "camera links are named PREFIXcamN_optical" in err
+    # joint states: the 4 columns of the flat order, the URDF's names
+    bag = tmp_path / "states.bag"
+    csv = cal_path.parent / "joint_angles.csv"
+    assert main(["export", str(cal_path), "--format", "joint-states", "--joints-csv", str(csv), "--out", str(bag),
+                 "-q"]) == 0  # fmt: skip
+    _, _, _, names, pos = _read_joint_bag(bag)
+    assert names == [list(joints)] * 20
+    np.testing.assert_array_equal(pos, theta)
 
 
 # ----------------------------------------------------------------------------------------- Kalibr

@@ -22,7 +22,7 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
     ("io: files and bags, no estimator types", ("dcc_fg.io",)),
     (
         "model/data: calibration model, measurements, targets, stream pairing",
-        ("dcc_fg.model", "dcc_fg.data", "dcc_fg.targets", "dcc_fg.sync"),
+        ("dcc_fg.model", "dcc_fg.cluster", "dcc_fg.data", "dcc_fg.targets", "dcc_fg.sync"),
     ),
     ("sim: synthetic data and ground truth", ("dcc_fg.sim",)),
     ("detection: target detection in images", ("dcc_fg.detection",)),
@@ -43,6 +43,7 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
             "dcc_fg.intrinsics",
             "dcc_fg.intrinsics_health",
             "dcc_fg.vio",
+            "dcc_fg.planning",
         ),
     ),
     ("studies: estimators on simulated data", ("dcc_fg.studies",)),

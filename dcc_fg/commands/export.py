@@ -9,6 +9,11 @@
 * ``joint-states``: ``--joints-csv`` as ``sensor_msgs/JointState`` in a ROS1 (``*.bag``) or ROS2
   bag (:mod:`dcc_fg.export.joint_states`), joint names as in the URDF.
 
+A calibration in the ``cameras:`` / ``chains:`` form (:mod:`dcc_fg.cluster`, N cameras on one or
+more chains) exports as a URDF with every camera and chain (:func:`dcc_fg.export.urdf.layout_urdf_text`;
+joints, limits and joint-state columns in the flat joint order, chains in file order); its Kalibr export
+needs a two-camera cluster (N-camera Kalibr export is not supported yet).
+
 ``--out`` is checked before any work (not an input, not inside an input folder, not an existing file
 without ``--force``; a bag only ever replaces a joint-state bag); files are written under temporary
 names and renamed into place together. Bad input raises ValueError / FileNotFoundError naming the
@@ -23,6 +28,7 @@ import math
 from pathlib import Path
 from typing import Any
 
+from dcc_fg.cluster import CameraCluster
 from dcc_fg.commands import common
 from dcc_fg.data.vio import load_imu_config
 from dcc_fg.export.joint_states import (
@@ -33,8 +39,8 @@ from dcc_fg.export.joint_states import (
     write_joint_state_bag,
 )
 from dcc_fg.export.kalibr import DEFAULT_TOPICS, camchain_text, frozen_camchain, imucam_path, parse_joint_angles
-from dcc_fg.export.naming import ClusterNames, cluster_names, parse_joint_names
-from dcc_fg.export.urdf import observed_limits, urdf_text
+from dcc_fg.export.naming import ClusterNames, LayoutNames, cluster_names, layout_names, parse_joint_names
+from dcc_fg.export.urdf import layout_urdf_text, observed_limits, urdf_text
 from dcc_fg.io.output_set import OutputFiles, OutputPathError
 from dcc_fg.model import GimbalCalibration, load_calibration
 from dcc_fg.util.provenance import package_version
@@ -97,6 +103,20 @@ def names_from_args(args: argparse.Namespace, cal: GimbalCalibration, source: st
     )
 
 
+def layout_names_from_args(args: argparse.Namespace, cluster: CameraCluster, source: str) -> LayoutNames:
+    """The URDF / joint-state names of an N-camera cluster from ``--prefix`` and ``--joint-names`` (the
+    flat joint order); ``--static-frame`` / ``--gimbal-frame`` are refused (the links are named per camera)."""
+    for option in ("static_frame", "gimbal_frame"):
+        if getattr(args, option, None) is not None:
+            raise ValueError(
+                f"--{option.replace('_', '-')}: {source} describes a cluster of {', '.join(cluster.camera_names)}; "
+                "its camera links are named PREFIXcamN_optical (use --prefix)"
+            )
+    count = cluster.joint_count
+    joints = parse_joint_names(args.joint_names, count, source) if args.joint_names is not None else None
+    return layout_names(cluster.camera_names, [(c.name, c.n_joints) for c in cluster.chains], args.prefix or "", joints)
+
+
 def _refuse_existing(paths: list[Path], force: bool) -> None:
     for p in paths:
         if p.exists() and not force:
@@ -116,22 +136,30 @@ def export_urdf(args: argparse.Namespace, cal_path: Path) -> list[Path]:
     _refuse_existing([out], args.force)
     margin = 0.0 if args.limit_margin is None else float(args.limit_margin)
     cal = load_calibration(cal_path)
-    names = names_from_args(args, cal, str(cal_path))
+    cluster = cal.cluster() if cal.layout is not None else None
+    n_joints = cal.n_joints if cluster is None else cluster.joint_count
+    names = names_from_args(args, cal, str(cal_path)) if cluster is None else None
+    cluster_link_names = layout_names_from_args(args, cluster, str(cal_path)) if cluster is not None else None
     limits = None
     notes = [_header(cal_path, "urdf")]
-    if cal.n_joints and csv is not None:
-        _, angles = read_joint_angles(csv, cal.n_joints, str(cal_path))
+    if n_joints and csv is not None:
+        _, angles = read_joint_angles(csv, n_joints, str(cal_path))
         limits = observed_limits(angles, margin)
         where = f"joint limits: the observed range of {len(angles)} rows of {csv.resolve()}"
         notes.append(where + (f", widened by {margin:g} rad" if margin else ""))
         log.info("%s: %s", out, where)
-    elif cal.n_joints:
+    elif n_joints:
         notes.append("joint limits: +-pi (no joint angles were given to take the observed range from)")
         log.info(
             "%s: joint limits set to +-pi rad: no joint_angles.csv beside %s and no --joints-csv to take the "
             "observed joint range from", out, cal_path,
         )  # fmt: skip
-    text = urdf_text(cal, names, limits, bool(args.body_frames), args.robot_name or "dcc_fg_cluster", notes)
+    robot = args.robot_name or "dcc_fg_cluster"
+    if names is not None:
+        text = urdf_text(cal, names, limits, bool(args.body_frames), robot, notes)
+    else:
+        assert cluster is not None and cluster_link_names is not None
+        text = layout_urdf_text(cluster, cluster_link_names, limits, bool(args.body_frames), robot, notes)
     with outputs:
         outputs["--out"].write_text(text, encoding="utf-8")
     return [out]
@@ -140,7 +168,7 @@ def export_urdf(args: argparse.Namespace, cal_path: Path) -> list[Path]:
 def export_kalibr(args: argparse.Namespace, cal_path: Path) -> list[Path]:
     """``--format kalibr`` (module docstring); the paths written."""
     out = Path(args.out)
-    cal = load_calibration(cal_path)
+    cal = load_calibration(cal_path).require_two_cameras("Kalibr export")
     if args.joints is None and cal.n_joints:
         raise ValueError(
             f"--format kalibr needs --joints THETA_1,...,THETA_L: the {cal.n_joints} joint angle(s) of {cal_path} at "
@@ -189,12 +217,18 @@ def export_joint_states(args: argparse.Namespace, cal_path: Path) -> list[Path]:
     if not topic.startswith("/") or " " in topic:
         raise ValueError(f"--topic {topic!r}: a ROS topic name starts with '/' and has no spaces")
     cal = load_calibration(cal_path)
-    if cal.n_joints == 0:
-        raise ValueError(f"{cal_path}: joints: 0 (a rigid camera pair): there are no joint angles to write")
-    names = names_from_args(args, cal, str(cal_path))
-    stamps, angles = read_joint_angles(csv, cal.n_joints, str(cal_path))
-    n = write_joint_state_bag(out, stamps, angles, names.joints, topic, args.storage or "sqlite3")
-    log.info("%s: %d sensor_msgs/JointState messages on %s (joints %s)", out, n, topic, ", ".join(names.joints))
+    if cal.layout is None:
+        if cal.n_joints == 0:
+            raise ValueError(f"{cal_path}: joints: 0 (a rigid camera pair): there are no joint angles to write")
+        n_joints, joint_names = cal.n_joints, names_from_args(args, cal, str(cal_path)).joints
+    else:
+        cluster = cal.cluster()
+        if cluster.joint_count == 0:
+            raise ValueError(f"{cal_path}: every chain has joints: 0: there are no joint angles to write")
+        n_joints, joint_names = cluster.joint_count, layout_names_from_args(args, cluster, str(cal_path)).joints
+    stamps, angles = read_joint_angles(csv, n_joints, str(cal_path))
+    n = write_joint_state_bag(out, stamps, angles, joint_names, topic, args.storage or "sqlite3")
+    log.info("%s: %d sensor_msgs/JointState messages on %s (joints %s)", out, n, topic, ", ".join(joint_names))
     return [out]
 
 

@@ -14,6 +14,10 @@ Default names (every one behind ``prefix``; see :func:`cluster_names`):
 * fixed joints: ``gimbal_base_mount`` (s -> b), ``gimbal_end_effector_fixed`` (link L -> e),
   ``gimbal_camera_mount`` (e -> d, the ``tau_d`` mount), and with body frames
   ``static_camera_optical_joint`` / ``gimbal_camera_optical_joint``.
+
+An N-camera cluster (a ``cameras:`` / ``chains:`` calibration, :mod:`dcc_fg.cluster`) is named per
+camera and chain instead (:func:`layout_names`): ``camN_optical``, ``<chain>_base``,
+``<chain>_link_l``, ``<chain>_end_effector``, revolute ``joint_l`` (one chain) or ``<chain>_joint_l``.
 """
 
 from __future__ import annotations
@@ -133,6 +137,94 @@ def cluster_names(
     for n in joint_list:
         check_name(n, "joint name")
     for kind, values in (("link", names.link_names(True)), ("joint", names.joint_names(True))):
+        dup = sorted({v for v in values if values.count(v) > 1})
+        if dup:
+            raise ValueError(f"two {kind}s would both be named {', '.join(dup)}; choose other names")
+    return names
+
+
+@dataclass(frozen=True)
+class LayoutNames:
+    """Link and joint names of an N-camera cluster's URDF (:func:`layout_names`).
+
+    Attributes:
+        optical, body: camera -> its optical link (z forward, x right, y down) / ROS body link.
+        mount, optical_joint: camera -> the fixed joint placing it (from cam0's optical link for a
+            static camera, from its chain's end effector otherwise) / its body -> optical joint.
+        base, end_effector, base_mount, end_effector_fixed: chain -> frame b, frame e, the fixed joints
+            cam0 -> b and link L -> e.
+        links: chain -> its L moving links.
+        joints: the revolute joints of every chain, in the order of the flat joint-angle vector.
+        chain_joints: chain -> its revolute joints.
+    """
+
+    optical: dict[str, str]
+    body: dict[str, str]
+    mount: dict[str, str]
+    optical_joint: dict[str, str]
+    base: dict[str, str]
+    links: dict[str, tuple[str, ...]]
+    end_effector: dict[str, str]
+    base_mount: dict[str, str]
+    end_effector_fixed: dict[str, str]
+    joints: tuple[str, ...]
+    chain_joints: dict[str, tuple[str, ...]]
+
+
+def layout_names(
+    cameras: Sequence[str],
+    chains: Sequence[tuple[str, int]],
+    prefix: str = "",
+    joints: Sequence[str] | None = None,
+) -> LayoutNames:
+    """Names for a cluster of ``cameras`` (``cam0`` first) and ``chains`` ((name, L), in flat-vector order).
+
+    Links ``PREFIXcamN_optical`` / ``PREFIXcamN`` (body), ``PREFIX<chain>_base``, ``PREFIX<chain>_link_l``,
+    ``PREFIX<chain>_end_effector``; fixed joints ``PREFIXcamN_mount``, ``PREFIXcamN_optical_joint``,
+    ``PREFIX<chain>_base_mount``, ``PREFIX<chain>_end_effector_fixed``; revolute joints
+    ``PREFIXjoint_l`` for one chain (as for two cameras), ``PREFIX<chain>_joint_l`` for several, or
+    ``joints`` verbatim (the flat order).
+
+    Raises:
+        ValueError: a name that is not usable, the wrong number of joint names, or two links or two
+            joints of the same name.
+    """
+    p = prefix
+    if p:
+        check_name(p, "--prefix")
+    total = sum(n for _, n in chains)
+    if joints is None:
+        flat = [
+            f"{p}joint_{k + 1}" if len(chains) == 1 else f"{p}{c}_joint_{k + 1}" for c, n in chains for k in range(n)
+        ]
+    else:
+        flat = list(joints)
+    if len(flat) != total:
+        raise ValueError(f"{len(flat)} joint names for {total} joints")
+    per_chain, k = {}, 0
+    for c, n in chains:
+        per_chain[c] = tuple(flat[k : k + n])
+        k += n
+    names = LayoutNames(
+        optical={c: f"{p}{c}_optical" for c in cameras},
+        body={c: f"{p}{c}" for c in cameras},
+        mount={c: f"{p}{c}_mount" for c in cameras},
+        optical_joint={c: f"{p}{c}_optical_joint" for c in cameras},
+        base={c: f"{p}{c}_base" for c, _ in chains},
+        links={c: tuple(f"{p}{c}_link_{k + 1}" for k in range(n)) for c, n in chains},
+        end_effector={c: f"{p}{c}_end_effector" for c, _ in chains},
+        base_mount={c: f"{p}{c}_base_mount" for c, _ in chains},
+        end_effector_fixed={c: f"{p}{c}_end_effector_fixed" for c, _ in chains},
+        joints=tuple(flat),
+        chain_joints=per_chain,
+    )
+    for n in flat:
+        check_name(n, "joint name")
+    links = [*names.optical.values(), *names.body.values(), *names.base.values(), *names.end_effector.values()]
+    links += [x for v in names.links.values() for x in v]
+    joint_list = [*names.mount.values(), *names.optical_joint.values(), *names.base_mount.values()]
+    joint_list += [*names.end_effector_fixed.values(), *flat]
+    for kind, values in (("link", links), ("joint", joint_list)):
         dup = sorted({v for v in values if values.count(v) > 1})
         if dup:
             raise ValueError(f"two {kind}s would both be named {', '.join(dup)}; choose other names")

@@ -38,6 +38,20 @@ round-trip representation, so the file holds the calibration to the last bit of 
 returning, :func:`urdf_text` checks the forward kinematics of what it writes against ``T_ds``.
 Joint limits are the observed range of the joint angles (:func:`observed_limits`), else +-pi; a
 calibration does not know efforts and velocities, written as 0.
+
+An N-camera cluster (a ``cameras:`` / ``chains:`` calibration, :mod:`dcc_fg.cluster`;
+:func:`layout_joints`, :func:`layout_urdf_text`) has the same parts per chain and camera, names from
+:func:`dcc_fg.export.naming.layout_names`::
+
+    cam0_optical (s, root)
+      camN_mount (fixed), static camN     origin T_s_cN = inv(T_cs)
+      <chain>_base_mount (fixed)          origin inv(T_bs(tau_s)) of that chain, then its revolute
+                                          joints and <chain>_end_effector as above
+    <chain>_end_effector
+      camN_mount (fixed), each camera on the chain   origin inv(T_de(tau_d)) of that camera
+
+so the pose of ``camN_optical`` in ``cam0_optical`` is ``inv(T_cs(camN, theta))`` with each revolute
+joint at its angle of the flat joint-angle vector (chains in file order).
 """
 
 from __future__ import annotations
@@ -51,7 +65,8 @@ from typing import Literal
 import numpy as np
 from numpy.typing import NDArray
 
-from dcc_fg.export.naming import ClusterNames
+from dcc_fg.cluster import CameraCluster
+from dcc_fg.export.naming import ClusterNames, LayoutNames
 from dcc_fg.model import GimbalCalibration
 from factors import chain
 
@@ -150,33 +165,120 @@ def cluster_joints(
     L = cal.n_joints
     if len(names.joints) != L:
         raise ValueError(f"{len(names.joints)} joint names for a calibration with {L} joints")
-    lim = np.tile([-math.pi, math.pi], (L, 1)) if limits is None else np.asarray(limits, dtype=float).reshape(L, 2)
-    if not np.all(np.isfinite(lim)) or np.any(lim[:, 0] > lim[:, 1]):
-        raise ValueError(f"joint limits must be finite with lower <= upper (rad), got {lim.tolist()}")
+    lim = _limits(limits, L)
     joints: list[UrdfJoint] = []
     if body_frames:
         joints.append(UrdfJoint(names.static_optical_joint, "fixed", names.static_body, names.static_optical,
                                 (0.0, 0.0, 0.0), BODY_TO_OPTICAL_RPY))  # fmt: skip
-    xyz, rpy = _pose(chain.inv_se3(cal.T_bs()))
-    joints.append(UrdfJoint(names.base_mount, "fixed", names.static_optical, names.base, xyz, rpy))
-    parent = names.base
-    offset: tuple[tuple[float, float, float], tuple[float, float, float]] = ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
-    for k in range(L):
-        lower, upper = (float(x) for x in lim[k])
-        joints.append(UrdfJoint(names.joints[k], "revolute", parent, names.links[k], *offset, (lower, upper)))
-        parent = names.links[k]
-        offset = _link_offset(cal.dh[k])
-    joints.append(UrdfJoint(names.end_effector_fixed, "fixed", parent, names.end_effector, *offset))
+    parts = ChainParts(names.base_mount, names.base, names.joints, names.links, names.end_effector_fixed,
+                       names.end_effector)  # fmt: skip
+    joints += _chain_joints(names.static_optical, parts, cal.T_bs(), cal.dh, lim)
     T_ed = chain.inv_se3(cal.T_de())
+    joints += _camera_joints(names.end_effector, T_ed, names.gimbal_mount, names.gimbal_body, names.gimbal_optical,
+                             names.gimbal_optical_joint, body_frames)  # fmt: skip
+    return joints
+
+
+@dataclass(frozen=True)
+class ChainParts:
+    """The names of one chain's links and joints: the fixed base mount, the base link b, the revolute
+    joints and moving links, the fixed joint to the end effector, the end-effector link e."""
+
+    base_mount: str
+    base: str
+    joints: tuple[str, ...]
+    links: tuple[str, ...]
+    end_effector_fixed: str
+    end_effector: str
+
+
+def _chain_joints(root: str, parts: ChainParts, T_bs: FloatArray, dh: FloatArray, lim: FloatArray) -> list[UrdfJoint]:
+    """The joints of one chain below link ``root`` (the reference static camera's optical frame s):
+    ``root -> b`` at ``inv(T_bs)``, one revolute joint per DH row ``[d, a, alpha]`` (limits ``lim`` (L, 2),
+    rad), ``link L -> e`` at the last row's fixed part."""
+    xyz, rpy = _pose(chain.inv_se3(T_bs))
+    joints = [UrdfJoint(parts.base_mount, "fixed", root, parts.base, xyz, rpy)]
+    parent = parts.base
+    offset: tuple[tuple[float, float, float], tuple[float, float, float]] = ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
+    for k in range(dh.shape[0]):
+        lower, upper = (float(x) for x in lim[k])
+        joints.append(UrdfJoint(parts.joints[k], "revolute", parent, parts.links[k], *offset, (lower, upper)))
+        parent = parts.links[k]
+        offset = _link_offset(dh[k])
+    joints.append(UrdfJoint(parts.end_effector_fixed, "fixed", parent, parts.end_effector, *offset))
+    return joints
+
+
+def _camera_joints(
+    parent: str,
+    T_parent_optical: FloatArray,
+    mount: str,
+    body: str,
+    optical: str,
+    optical_joint: str,
+    body_frames: bool,
+) -> list[UrdfJoint]:
+    """The fixed joint(s) placing a camera's optical link at ``T_parent_optical`` (4x4) in ``parent``:
+    directly, or with ``body_frames`` through its ROS body link (optical = body turned by
+    :data:`BODY_TO_OPTICAL_RPY`)."""
+    if not body_frames:
+        xyz, rpy = _pose(T_parent_optical)
+        return [UrdfJoint(mount, "fixed", parent, optical, xyz, rpy)]
+    T_optical_body = chain.inv_se3(chain.se3_from_tau(np.array([*BODY_TO_OPTICAL_RPY, 0.0, 0.0, 0.0])))
+    xyz, rpy = _pose(T_parent_optical @ T_optical_body)
+    return [
+        UrdfJoint(mount, "fixed", parent, body, xyz, rpy),
+        UrdfJoint(optical_joint, "fixed", body, optical, (0.0, 0.0, 0.0), BODY_TO_OPTICAL_RPY),
+    ]
+
+
+def _limits(limits: FloatArray | None, n: int) -> FloatArray:
+    """(n, 2) joint limits (rad), +-pi where None; ValueError unless finite with lower <= upper."""
+    lim = np.tile([-math.pi, math.pi], (n, 1)) if limits is None else np.asarray(limits, dtype=float).reshape(n, 2)
+    if not np.all(np.isfinite(lim)) or np.any(lim[:, 0] > lim[:, 1]):
+        raise ValueError(f"joint limits must be finite with lower <= upper (rad), got {lim.tolist()}")
+    return lim
+
+
+def layout_joints(
+    cluster: CameraCluster, names: LayoutNames, limits: FloatArray | None = None, body_frames: bool = False
+) -> list[UrdfJoint]:
+    """The URDF joints of an N-camera ``cluster`` (module docstring), parents before children.
+
+    Args:
+        cluster: the cameras and chains (``T_cs`` of static cameras, ``tau_s`` / ``dh`` per chain,
+            ``tau_d`` per chain camera; rad, m).
+        names: from :func:`dcc_fg.export.naming.layout_names` for this cluster.
+        limits: (J, 2) lower / upper joint angles (rad) in the flat joint order; None: +-pi.
+        body_frames: root at cam0's ROS body frame and a body frame for every camera.
+    """
+    lim = _limits(limits, cluster.joint_count)
+    if len(names.joints) != cluster.joint_count:
+        raise ValueError(f"{len(names.joints)} joint names for a cluster with {cluster.joint_count} joints")
+    ref = cluster.cameras[0].name
+    root = names.optical[ref]
+    joints: list[UrdfJoint] = []
     if body_frames:
-        T_optical_body = chain.inv_se3(chain.se3_from_tau(np.array([*BODY_TO_OPTICAL_RPY, 0.0, 0.0, 0.0])))
-        xyz, rpy = _pose(T_ed @ T_optical_body)
-        joints.append(UrdfJoint(names.gimbal_mount, "fixed", names.end_effector, names.gimbal_body, xyz, rpy))
-        joints.append(UrdfJoint(names.gimbal_optical_joint, "fixed", names.gimbal_body, names.gimbal_optical,
-                                (0.0, 0.0, 0.0), BODY_TO_OPTICAL_RPY))  # fmt: skip
-    else:
-        xyz, rpy = _pose(T_ed)
-        joints.append(UrdfJoint(names.gimbal_mount, "fixed", names.end_effector, names.gimbal_optical, xyz, rpy))
+        joints.append(UrdfJoint(names.optical_joint[ref], "fixed", names.body[ref], root, (0.0, 0.0, 0.0),
+                                BODY_TO_OPTICAL_RPY))  # fmt: skip
+
+    def camera(parent: str, name: str, T: FloatArray) -> list[UrdfJoint]:
+        return _camera_joints(parent, T, names.mount[name], names.body[name], names.optical[name],
+                              names.optical_joint[name], body_frames)  # fmt: skip
+
+    for cam in cluster.cameras[1:]:
+        if cam.is_static:
+            joints += camera(root, cam.name, chain.inv_se3(cluster.T_cs(cam.name)))
+    slices = cluster.joint_slices()
+    for ch in cluster.chains:
+        c = ch.name
+        parts = ChainParts(
+            names.base_mount[c], names.base[c], names.chain_joints[c], names.links[c], names.end_effector_fixed[c],
+            names.end_effector[c],
+        )  # fmt: skip
+        joints += _chain_joints(root, parts, ch.T_bs(), ch.dh, lim[slices[ch.name]])
+        for cam_name in cluster.cameras_on(ch.name):
+            joints += camera(parts.end_effector, cam_name, chain.inv_se3(cluster.camera(cam_name).T_de()))
     return joints
 
 
@@ -251,7 +353,6 @@ def urdf_text(
     """
     joints = cluster_joints(cal, names, limits, body_frames)
     self_check(cal, joints, names)
-    robot = ET.Element("robot", name=robot_name)
     header = [
         "Dynamic camera cluster (dcc-fg): static camera s, gimbal base b, end effector e, gimbal camera d.",
         f"Root link {joints[0].parent}. Camera links {names.static_optical} (static camera s) and "
@@ -262,9 +363,15 @@ def urdf_text(
         "Effort and velocity limits are not known from a calibration (written as 0).",
         *notes,
     ]
+    return _robot_xml(robot_name, header, names.link_names(body_frames), joints)
+
+
+def _robot_xml(robot_name: str, header: Sequence[str], links: Sequence[str], joints: Sequence[UrdfJoint]) -> str:
+    """The URDF XML text: header comments, the links, the joints."""
+    robot = ET.Element("robot", name=robot_name)
     for line in header:
         robot.append(_comment(line))
-    for link in names.link_names(body_frames):
+    for link in links:
         ET.SubElement(robot, "link", name=link)
     for j in joints:
         e = ET.SubElement(robot, "joint", name=j.name, type=j.kind)
@@ -277,3 +384,63 @@ def urdf_text(
             ET.SubElement(e, "limit", lower=_number(lower), upper=_number(upper), effort="0", velocity="0")
     ET.indent(robot, space="  ")
     return '<?xml version="1.0"?>\n' + ET.tostring(robot, encoding="unicode") + "\n"
+
+
+def layout_self_check(cluster: CameraCluster, joints: Sequence[UrdfJoint], names: LayoutNames, seed: int = 0) -> float:
+    """Largest difference between the joints' forward kinematics ``T_s_c(q = theta)`` of every camera c
+    and ``inv(T_cs(c, theta))`` over a few flat joint-angle vectors (rad); RuntimeError (a bug) beyond
+    :data:`SELF_CHECK_TOLERANCE`."""
+    rng = np.random.default_rng(seed)
+    J = cluster.joint_count
+    root = names.optical[cluster.cameras[0].name]
+    worst = 0.0
+    for theta in [np.zeros(J), *rng.uniform(-math.pi, math.pi, size=(4, J))]:
+        q = dict(zip(names.joints, (float(x) for x in theta), strict=True))
+        poses = link_poses(joints, q)
+        T_root_inv = chain.inv_se3(poses[root])
+        for cam in cluster.camera_names:
+            T_sc = T_root_inv @ poses[names.optical[cam]]
+            worst = max(worst, float(np.abs(T_sc - chain.inv_se3(cluster.T_cs(cam, theta))).max()))
+    if not worst <= SELF_CHECK_TOLERANCE:
+        raise RuntimeError(f"URDF export: the cluster's forward kinematics differ from inv(T_cs) by {worst:.3g}")
+    return worst
+
+
+def layout_urdf_text(
+    cluster: CameraCluster,
+    names: LayoutNames,
+    limits: FloatArray | None = None,
+    body_frames: bool = False,
+    robot_name: str = "dcc_fg_cluster",
+    notes: Sequence[str] = (),
+) -> str:
+    """The URDF XML of an N-camera ``cluster`` (module docstring), checked by :func:`layout_self_check`.
+
+    Args:
+        cluster: the cameras and chains.
+        names: link and joint names (:func:`dcc_fg.export.naming.layout_names`).
+        limits: (J, 2) joint limits (rad) in the flat joint order; None: +-pi.
+        body_frames: add every camera's ROS body frame (root: cam0's).
+        robot_name: the ``<robot name>``.
+        notes: extra lines for the header comment.
+    """
+    joints = layout_joints(cluster, names, limits, body_frames)
+    layout_self_check(cluster, joints, names)
+    root = names.optical[cluster.cameras[0].name]
+    cams = ", ".join(f"{names.optical[c.name]} ({c.name}, {'static' if c.is_static else 'on chain ' + c.mount})"
+                     for c in cluster.cameras)  # fmt: skip
+    order = ", ".join(names.joints) or "none"
+    header = [
+        f"Dynamic camera cluster (dcc-fg), {len(cluster.cameras)} cameras: {cams}.",
+        f"Root link {joints[0].parent if joints else root}. Camera links are optical frames: z forward, x right, "
+        "y down. Chains: "
+        + ", ".join(f"{names.base[c.name]} .. {names.end_effector[c.name]}" for c in cluster.chains)
+        + ".",
+        f"With the revolute joints ({order}) at the flat joint-angle vector theta (rad; chains in file order), the "
+        f"pose of camN's link in {root} is T_s_camN(theta) = inv(T_cs(camN, theta)).",
+        "Joint axes: z of each joint frame (standard DH: A_l = Rz(theta_l) Tz(d_l) Tx(a_l) Rx(alpha_l)). "
+        "Effort and velocity limits are not known from a calibration (written as 0).",
+        *notes,
+    ]
+    links = [joints[0].parent, *(j.child for j in joints)] if joints else [root]
+    return _robot_xml(robot_name, header, links, joints)

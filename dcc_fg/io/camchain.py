@@ -5,17 +5,21 @@ Kalibr's ``intrinsics`` are ``[fx, fy, cx, cy]`` (pixels; Kalibr names them fu, 
 numbers, positive focal lengths and resolution, known distortion model with the right number of
 coefficients, rigid ``T_cn_cnm1`` / ``T_cam_imu``); errors name the file, the entry and the field.
 Fields we do not interpret (``T_cn_cnm1``, ``cam_overlaps``, ``timeshift_cam_imu``...) are kept
-verbatim in :class:`CamchainEntry.extra` so a camchain round-trips unchanged.
+verbatim in :class:`CamchainEntry.extra` so a camchain round-trips unchanged;
+:func:`camchain_transforms` chains the ``T_cn_cnm1`` into each camera's pose relative to cam0.
 """
 
 from __future__ import annotations
 
 import logging
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import yaml
+from numpy.typing import NDArray
 
 from dcc_fg.io import validate
 from factors.camera import CameraModel
@@ -154,3 +158,44 @@ def camchain_to_yaml(entries: dict[str, CamchainEntry]) -> str:
         item.update(e.extra)
         d[name] = item
     return yaml.safe_dump(d, sort_keys=False)
+
+
+def camchain_transforms(
+    entries: Mapping[str, CamchainEntry], source: str, cameras: Sequence[str] | None = None
+) -> dict[str, NDArray[np.float64]]:
+    """``T_cn_c0`` (4x4: maps points of cam0 into camN, metres) of each camera, by chaining Kalibr's
+    ``T_cn_cnm1`` (camN-1 -> camN): ``T_cn_c0 = T_cn_cnm1 @ T_cnm1_c0``, ``T_c0_c0 = I``.
+
+    Args:
+        entries: the camchain (:func:`load_camchain`), cameras ``cam0 .. camN-1``.
+        source: the camchain file, for messages.
+        cameras: the cameras wanted (default: all); only the ``T_cn_cnm1`` on their paths from cam0 are needed.
+
+    Raises:
+        ValueError: naming ``source``: no ``cam0``, a gap in the names, or a ``T_cn_cnm1`` missing on
+            the path of a wanted camera (or not a rigid 4x4).
+    """
+    numbers = {}
+    for name in entries:
+        if not (name.startswith("cam") and name[3:].isdigit()):
+            raise ValueError(f"{source}: camera entries must be named cam0, cam1, ... (Kalibr's names), got {name!r}")
+        numbers[name] = int(name[3:])
+    if sorted(numbers.values()) != list(range(len(numbers))):
+        raise ValueError(
+            f"{source}: cameras must be cam0 .. cam{len(numbers) - 1} without gaps, got {', '.join(entries)}"
+        )
+    wanted = list(entries) if cameras is None else list(cameras)
+    last = max((numbers[c] for c in wanted if c in numbers), default=0)
+    out: dict[str, NDArray[np.float64]] = {"cam0": np.eye(4)}
+    T = np.eye(4)
+    for n in range(1, last + 1):
+        entry = entries[f"cam{n}"]
+        raw = entry.extra.get("T_cn_cnm1")
+        if raw is None:
+            raise ValueError(
+                f"{source}: cam{n}.T_cn_cnm1: missing field (needed to place "
+                f"{', '.join(c for c in wanted if numbers.get(c, -1) >= n)} relative to cam0)"
+            )
+        T = validate.rigid_transform(raw, f"{source}: cam{n}.T_cn_cnm1") @ T
+        out[f"cam{n}"] = T
+    return {c: out[c] for c in wanted if c in out}

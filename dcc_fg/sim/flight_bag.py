@@ -413,7 +413,7 @@ def load_flight_calibration(path: str | Path) -> tuple[GimbalCalibration, ImuCon
     imu = load_imu_config(path)
     if imu is None:
         raise ValueError(f"{path}: no 'imu:' section (T_sI and IMU noise are needed for VIO)")
-    return load_calibration(path), imu
+    return load_calibration(path).require_two_cameras("flight simulation", allow_subset=True), imu
 
 
 def load_flight_timing(path: str | Path) -> CameraTiming:
