@@ -19,7 +19,15 @@ import dcc_fg.io.bag_writer as bag_writer
 import dcc_fg.io.folders as folders
 from dcc_fg.data import Observation
 from dcc_fg.io.bag_writer import write_ros1_bag, write_ros2_bag
-from dcc_fg.io.bags import BagImagePairs, decode_image, read_bag_pairs
+from dcc_fg.io.bags import (
+    BagImagePairs,
+    MessageReference,
+    decode_image,
+    fetch_image,
+    open_bag,
+    raw_stamp_ns,
+    read_bag_pairs,
+)
 from dcc_fg.io.camchain import CamchainEntry
 from dcc_fg.io.folders import FramePair, ImageFolder, read_joints_csv, write_image_folder
 from dcc_fg.io.layout import detect_layout
@@ -216,6 +224,21 @@ def test_bag_round_trip(tmp_path: Path, kind: str, compressed: bool) -> None:
             assert a.dtype == b.dtype and np.array_equal(a, b)
         assert g.joints is not None and np.allclose(g.joints, s.joints)
         assert "/cam0/image_raw" in g.static_source
+    # Where each pair's messages are (for detection workers that read the bag themselves): same order,
+    # stamps, joints and, fetched by record time, the same images.
+    refs = pairs.references()
+    assert [r.static.stamp_ns for r in refs] == [g.timestamp_ns for g in got]
+    assert [r.dynamic.stamp_ns for r in refs] == [g.dynamic_timestamp_ns for g in got]
+    with open_bag(Path(bag)) as reader:
+        for r, g in zip(refs, got, strict=True):
+            assert r.joints is not None and g.joints is not None and np.array_equal(r.joints, g.joints)
+            assert r.static.where(Path(bag)) == g.static_source and r.dynamic.where(Path(bag)) == g.dynamic_source
+            for ref, image in ((r.static, g.static), (r.dynamic, g.dynamic)):
+                fetched = fetch_image(reader, Path(bag), ref)
+                assert fetched.dtype == image.dtype and np.array_equal(fetched, image)
+        gone = MessageReference("/cam0/image_raw", refs[0].static.record_ns + 1, refs[0].static.stamp_ns)
+        with pytest.raises(ValueError, match=r"topic /cam0/image_raw at .* no such message recorded"):
+            fetch_image(reader, Path(bag), gone)
     # The pairing report lists frames without a partner.
     more = [*src, FramePair(T0 + 50 * PERIOD, src[1].static, src[1].dynamic, dynamic_timestamp_ns=T0 + 60 * PERIOD)]
     bag2 = _write(kind, tmp_path / "rec2", more, compressed)
@@ -223,6 +246,19 @@ def test_bag_round_trip(tmp_path: Path, kind: str, compressed: bool) -> None:
     assert len(list(pairs)) == 3 and pairs.joints is None
     assert pairs.pairing.unpaired_static == [T0 + 50 * PERIOD]
     assert pairs.pairing.unpaired_dynamic == [T0 + 60 * PERIOD]
+
+
+def test_header_stamp_from_the_first_bytes() -> None:
+    """ROS 1 and ROS 2 (little- and big-endian CDR) headers; a zero stamp falls back to the record time."""
+    sec, nsec = 1_700_000_123, 456_789_012
+    ros1 = (7).to_bytes(4, "little") + sec.to_bytes(4, "little") + nsec.to_bytes(4, "little") + b"rest"
+    le = b"\x00\x01\x00\x00" + sec.to_bytes(4, "little") + nsec.to_bytes(4, "little") + b"rest"
+    be = b"\x00\x00\x00\x00" + sec.to_bytes(4, "big") + nsec.to_bytes(4, "big") + b"rest"
+    assert raw_stamp_ns(ros1, ros2=False) == raw_stamp_ns(le, ros2=True) == raw_stamp_ns(be, ros2=True)
+    assert raw_stamp_ns(le, ros2=True) == sec * 1_000_000_000 + nsec
+    assert raw_stamp_ns(b"\x00\x01\x00\x00" + bytes(8), ros2=True, fallback_ns=5) == 5
+    with pytest.raises(ValueError, match="too short"):
+        raw_stamp_ns(b"\x00\x01", ros2=True)
 
 
 def test_decode_image_encodings() -> None:
@@ -323,8 +359,8 @@ def test_a_bug_is_not_reported_as_a_corrupt_bag(tmp_path: Path, monkeypatch: pyt
         raise KeyError("a bug: no such field")
 
     monkeypatch.setattr(AnyReader, "deserialize", broken_deserialize)
-    with pytest.raises(KeyError, match="a bug"):
-        BagImagePairs(bag, "/cam0/image_raw", "/cam1/image_raw")
+    with pytest.raises(KeyError, match="a bug"):  # the images are deserialized when the pairs are read
+        list(BagImagePairs(bag, "/cam0/image_raw", "/cam1/image_raw"))
 
     def failed_assert(self):  # type: ignore[no-untyped-def]
         raise AssertionError("a bug: an assumption of ours")

@@ -3,6 +3,7 @@ path, bit for bit and in the same order, for image folders, bags, unsynchronized
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from collections.abc import Iterator
@@ -89,6 +90,7 @@ def _same(a: CalibrationDataset, b: CalibrationDataset) -> None:
     assert len(a.snapshots) == len(b.snapshots) > 0
     for s, t in zip(a.snapshots, b.snapshots, strict=True):
         assert s.timestamp_ns == t.timestamp_ns
+        assert (s.joints is None and t.joints is None) or np.array_equal(s.joints, t.joints)
         for o, p in ((s.static, t.static), (s.dynamic, t.dynamic)):
             assert np.array_equal(o.ids, p.ids) and np.array_equal(o.pixels, p.pixels)  # bit for bit
 
@@ -101,10 +103,13 @@ def rendered(tmp_path_factory: pytest.TempPathFactory) -> dict[str, RenderedCali
             root / "f", CalibrationSimSpec("checkerboard", "folder", seed=3, n_snapshots=10)
         ),
         "ros2": write_calibration_dataset(root / "b", CalibrationSimSpec("aprilgrid", "ros2", seed=4, n_snapshots=8)),
+        "ros1": write_calibration_dataset(
+            root / "r1", CalibrationSimSpec("checkerboard", "ros1", seed=5, n_snapshots=8)
+        ),
     }
 
 
-@pytest.mark.parametrize("kind", ["folder", "ros2"])
+@pytest.mark.parametrize("kind", ["folder", "ros2", "ros1"])
 def test_load_dataset_gives_the_serial_detections_on_two_processes(
     rendered: dict[str, RenderedCalibration], kind: str
 ) -> None:
@@ -113,6 +118,22 @@ def test_load_dataset_gives_the_serial_detections_on_two_processes(
     serial = load_dataset(r.data, chain, r.target, progress=False, jobs=1)
     pooled = load_dataset(r.data, chain, r.target, progress=False, jobs=2)
     _same(serial, pooled)
+
+
+def test_a_wrong_image_size_is_refused_alike_by_the_workers(rendered: dict[str, RenderedCalibration]) -> None:
+    """The workers that read the bag themselves check each image against the camchain's resolution and
+    raise the serial path's error, naming the message."""
+    r = rendered["ros2"]
+    chain = load_camchain(r.camchain)
+    cam1 = chain["cam1"]
+    w, h = cam1.camera.resolution
+    chain["cam1"] = dataclasses.replace(cam1, camera=dataclasses.replace(cam1.camera, resolution=(w + 2, h)))
+    messages = []
+    for jobs in (1, 2):
+        with pytest.raises(ValueError, match=rf"topic .* at \d+ ns: image is {w}x{h} but the camchain's cam1") as e:
+            load_dataset(r.data, chain, r.target, progress=False, jobs=jobs)
+        messages.append(str(e.value))
+    assert messages[0] == messages[1]
 
 
 def test_streams_and_intrinsics_give_the_serial_detections(rendered: dict[str, RenderedCalibration]) -> None:

@@ -142,6 +142,31 @@ def stamp_ns(msg: Any, fallback_ns: int = 0) -> int:
     return ns if ns != 0 else int(fallback_ns)
 
 
+def raw_stamp_ns(raw: bytes | memoryview, ros2: bool, fallback_ns: int = 0) -> int:
+    """Header stamp (ns) of a serialized message that starts with a ``std_msgs/Header`` (Image,
+    CompressedImage, JointState, Imu), read from its first bytes without deserializing the rest (an
+    image message is mostly pixels); ``fallback_ns`` if the stamp is zero, as :func:`stamp_ns`.
+
+    ROS 2 (CDR): a 4-byte encapsulation header (byte 1: 1 little-, 0 big-endian), then ``int32 sec,
+    uint32 nanosec``. ROS 1: ``uint32 seq, uint32 secs, uint32 nsecs``, little-endian.
+
+    Raises:
+        ValueError: a message too short to hold a header.
+    """
+    view = memoryview(raw).cast("B")
+    if len(view) < 12:
+        raise ValueError(f"message of {len(view)} bytes is too short for a header")
+    if ros2:
+        order = "little" if view[1] & 1 else "big"
+        sec = int.from_bytes(view[4:8], order, signed=True)
+        nsec = int.from_bytes(view[8:12], order)
+    else:
+        sec = int.from_bytes(view[4:8], "little")
+        nsec = int.from_bytes(view[8:12], "little")
+    ns = sec * 1_000_000_000 + nsec
+    return ns if ns != 0 else int(fallback_ns)
+
+
 def decode_image(msg: Any, msgtype: str, where: str) -> NDArray[np.generic]:
     """Decode a deserialized ``sensor_msgs/Image`` or ``CompressedImage`` to a numpy image.
 
@@ -313,6 +338,33 @@ def bag_messages(
         yield conn, t, msg
 
 
+def bag_image_stamps(
+    path: Path, reader: AnyReader, conns: list[Connection], duplicates: DuplicateFilter
+) -> Iterator[tuple[Connection, int, int]]:
+    """(connection, record time ns, header stamp ns) of the image messages of ``conns``, in bag order,
+    read from the messages' first bytes (:func:`raw_stamp_ns`; no image is deserialized); repeated
+    messages are dropped by ``duplicates`` exactly as :func:`bag_messages` drops them, so a later
+    :func:`bag_messages` pass sees the same messages in the same order."""
+    it = reader.messages(connections=conns)
+    while True:
+        try:
+            item = next(it)
+        except StopIteration:
+            return
+        except (*BAG_ERRORS, AssertionError) as exc:
+            if not is_bad_bag_error(exc):
+                raise
+            raise ValueError(f"{path}: truncated or corrupt bag ({type(exc).__name__}: {exc})") from None
+        conn, t, raw = item
+        try:
+            stamp = raw_stamp_ns(raw, reader.is2, t)
+        except ValueError as exc:
+            raise ValueError(f"{path}: topic {conn.topic}: message at {t} ns does not deserialize ({exc})") from None
+        if duplicates.drop(conn.topic, stamp, raw, True):
+            continue
+        yield conn, t, stamp
+
+
 def image_topic_connections(reader: AnyReader, path: Path, topic: str, hint: str = "") -> list[Connection]:
     """The connections of image ``topic``; ValueError naming the bag and topic if it is missing
     (listing the image topics, then ``hint``) or holds something other than images."""
@@ -388,6 +440,47 @@ def joint_state_topic(reader: AnyReader, path: Path, joint_topic: str | None) ->
     return joint_topic
 
 
+class MessageReference(NamedTuple):
+    """One kept image message of a bag: its ``topic``, record time (ns, the bag's clock) and header stamp
+    (ns; the record time when the header stamp is zero). Kept messages of a topic have distinct stamps
+    (:class:`DuplicateFilter`), so the first message of ``topic`` at ``record_ns`` with ``stamp_ns`` is it."""
+
+    topic: str
+    record_ns: int
+    stamp_ns: int
+
+    def where(self, path: Path) -> str:
+        """How errors name the message: ``<bag>: topic <topic> at <stamp> ns``."""
+        return f"{path}: topic {self.topic} at {self.stamp_ns} ns"
+
+
+class PairReference(NamedTuple):
+    """A synchronized pair's two messages (:meth:`BagImagePairs.references`) and its joint angles (rad)."""
+
+    static: MessageReference
+    dynamic: MessageReference
+    joints: NDArray[np.float64] | None
+
+
+def fetch_image(reader: AnyReader, path: Path, ref: MessageReference) -> NDArray[np.generic]:
+    """Decode the image message ``ref`` of the opened bag ``path`` by its record time (a time-indexed read:
+    only the messages recorded in that nanosecond are looked at).
+
+    Raises:
+        ValueError: naming the bag, topic and stamp when the message is not there (a bag changed since it
+            was scanned) or does not decode.
+    """
+    conns = [c for c in reader.connections if c.topic == ref.topic]
+    try:
+        for conn, t, raw in reader.messages(connections=conns, start=ref.record_ns, stop=ref.record_ns + 1):
+            msg = reader.deserialize(raw, conn.msgtype)
+            if stamp_ns(msg, t) == ref.stamp_ns:
+                return decode_image(msg, conn.msgtype, ref.where(path))
+    except BAG_ERRORS as exc:
+        raise ValueError(f"{ref.where(path)}: cannot read the message ({type(exc).__name__}: {exc})") from None
+    raise ValueError(f"{ref.where(path)}: no such message recorded at {ref.record_ns} ns (has the bag changed?)")
+
+
 class BagImagePairs:
     """Synchronized image pairs of two topics of a bag, streamed.
 
@@ -431,23 +524,26 @@ class BagImagePairs:
         self.tolerance_ns = tolerance_ns
         self.joint_names = list(joint_names) if joint_names is not None else None
         stamps: dict[str, list[int]] = {static_topic: [], dynamic_topic: []}
+        record: dict[str, list[tuple[int, int]]] = {static_topic: [], dynamic_topic: []}  # record time, position
         joint_stamps: list[int] = []
         joint_rows: list[NDArray[np.float64]] = []
         hint = "; set 'rostopic' in the camchain"
         with open_bag(self.path) as reader:
             conns = [c for topic in stamps for c in image_topic_connections(reader, self.path, topic, hint)]
             self.joint_topic = joint_state_topic(reader, self.path, joint_topic)
-            if self.joint_topic is not None:
-                conns += [c for c in reader.connections if c.topic == self.joint_topic]
             self.duplicates = DuplicateFilter()
-            for conn, t, msg in bag_messages(self.path, reader, conns, self.duplicates):
-                if conn.topic == self.joint_topic:
+            # the image stamps from the messages' headers alone (images are not deserialized here)
+            for position, (conn, t, stamp) in enumerate(bag_image_stamps(self.path, reader, conns, self.duplicates)):
+                stamps[conn.topic].append(stamp)
+                record[conn.topic].append((t, position))
+            if self.joint_topic is not None:
+                joint_conns = [c for c in reader.connections if c.topic == self.joint_topic]
+                for _, t, msg in bag_messages(self.path, reader, joint_conns, self.duplicates):
                     joint_stamps.append(stamp_ns(msg, t))
                     joint_rows.append(self._joint_positions(msg, t))
-                else:
-                    stamps[conn.topic].append(stamp_ns(msg, t))
         self.duplicates.log(self.path)
         self._stamps = stamps
+        self._record = record
         self.pairing: Pairing = pair_timestamps(stamps[static_topic], stamps[dynamic_topic], tolerance_ns)
         check_pairing(
             self.pairing,
@@ -482,17 +578,35 @@ class BagImagePairs:
     def __len__(self) -> int:
         return len(self.pairing.pairs)
 
+    def _pair_joints(self) -> list[NDArray[np.float64] | None]:
+        """Per pair of :attr:`pairing`, the joint angles nearest to its static stamp (None: none)."""
+        if self.joints is None:
+            return [None] * len(self.pairing.pairs)
+        pair_stamps = [self._stamps[self.static_topic][i] for i, _ in self.pairing.pairs]
+        jidx = nearest_within(pair_stamps, self.joints[0], self.tolerance_ns)
+        return [self.joints[1][j].copy() if j >= 0 else None for j in jidx]
+
     def __iter__(self) -> Iterator[FramePair]:
         """Second pass: yield the pairs in the order their second image appears in the bag."""
-        pair_stamps = [self._stamps[self.static_topic][i] for i, _ in self.pairing.pairs]
-        jidx = nearest_within(pair_stamps, self.joints[0], self.tolerance_ns) if self.joints is not None else None
+        joints = self._pair_joints()
         topics = (self.static_topic, self.dynamic_topic)
         for n, (s, d) in stream_image_groups(self.path, topics, self.pairing.pairs):
             assert s is not None and d is not None  # every group is a pair
-            joints = None
-            if self.joints is not None and jidx is not None and jidx[n] >= 0:
-                joints = self.joints[1][jidx[n]].copy()
-            yield FramePair(s.stamp_ns, s.image, d.image, joints, s.where, d.where, d.stamp_ns)
+            yield FramePair(s.stamp_ns, s.image, d.image, joints[n], s.where, d.where, d.stamp_ns)
+
+    def references(self) -> list[PairReference]:
+        """Where each pair's two messages are, without decoding them, in the order :meth:`__iter__` yields
+        the pairs (that of the bag position of a pair's later message): for readers that fetch the
+        images themselves (:func:`fetch_image`, e.g. detection workers)."""
+        joints = self._pair_joints()
+        refs = []
+        for n, (i, j) in enumerate(self.pairing.pairs):
+            (t_s, pos_s), (t_d, pos_d) = self._record[self.static_topic][i], self._record[self.dynamic_topic][j]
+            static = MessageReference(self.static_topic, t_s, self._stamps[self.static_topic][i])
+            dynamic = MessageReference(self.dynamic_topic, t_d, self._stamps[self.dynamic_topic][j])
+            refs.append((max(pos_s, pos_d), PairReference(static, dynamic, joints[n])))
+        refs.sort(key=lambda r: r[0])
+        return [r for _, r in refs]
 
 
 def read_bag_pairs(

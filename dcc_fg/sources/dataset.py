@@ -30,7 +30,7 @@ from tqdm import tqdm
 
 from dcc_fg.data import CalibrationDataset, Snapshot
 from dcc_fg.detection import detect_target
-from dcc_fg.io.bags import BagImagePairs, BagTopicImages
+from dcc_fg.io.bags import BagImagePairs, BagTopicImages, PairReference
 from dcc_fg.io.camchain import CamchainEntry, load_camchain
 from dcc_fg.io.folders import (
     DYNAMIC_DIR,
@@ -44,7 +44,15 @@ from dcc_fg.io.folders import (
 from dcc_fg.io.layout import Layout, detect_layout
 from dcc_fg.io.pairing import DEFAULT_TOLERANCE_NS, Pairing
 from dcc_fg.sources.detections import read_detection_folder
-from dcc_fg.sources.parallel_detection import Detector, detect_images, detect_pairs
+from dcc_fg.sources.parallel_detection import (
+    CameraSize,
+    Detector,
+    check_resolution,
+    detect_bag_pairs,
+    detect_images,
+    detect_pairs,
+    pool_jobs,
+)
 from dcc_fg.sync import CameraStream
 from dcc_fg.targets import TargetGeometry, load_target
 
@@ -57,12 +65,10 @@ def _common(snap: Snapshot) -> int:
     return int(np.intersect1d(snap.static.ids, snap.dynamic.ids).size)
 
 
-def _check_resolution(img: NDArray[np.generic], entry: CamchainEntry, cam: str, where: str) -> None:
+def _size(entry: CamchainEntry, cam: str) -> CameraSize:
+    """The camera's name and its camchain resolution (width, height), px."""
     w, h = entry.camera.resolution
-    if img.shape[:2] != (h, w):
-        raise ValueError(
-            f"{where}: image is {img.shape[1]}x{img.shape[0]} but the camchain's {cam} resolution is {w}x{h}"
-        )
+    return cam, (int(w), int(h))
 
 
 def _detect_frames(
@@ -78,16 +84,26 @@ def _detect_frames(
 ) -> list[Snapshot]:
     """Detect the target in every pair (read here, detected on ``jobs`` processes), in input order."""
     meta: deque[tuple[int, NDArray[np.float64] | None]] = deque()  # stamp and joints of the pairs in flight
+    sizes = (_size(entries[0], names[0]), _size(entries[1], names[1]))
 
     def images() -> Iterator[tuple[NDArray[np.generic], NDArray[np.generic]]]:
         for fr in frames:
-            _check_resolution(fr.static, entries[0], names[0], fr.static_source)
-            _check_resolution(fr.dynamic, entries[1], names[1], fr.dynamic_source)
+            check_resolution(fr.static, sizes[0], fr.static_source)
+            check_resolution(fr.dynamic, sizes[1], fr.dynamic_source)
             meta.append((fr.timestamp_ns, fr.joints))
             yield fr.static, fr.dynamic
 
+    def references() -> Iterator[PairReference]:
+        assert isinstance(frames, BagImagePairs)
+        for ref in frames.references():
+            meta.append((ref.static.stamp_ns, ref.joints))
+            yield ref
+
     snapshots = []
-    results = detect_pairs(images(), target, detector, jobs)
+    if isinstance(frames, BagImagePairs) and pool_jobs(detector, jobs) > 1:  # the workers read the bag
+        results = detect_bag_pairs(frames.path, references(), sizes, target, detector, jobs)
+    else:
+        results = detect_pairs(images(), target, detector, jobs)
     for obs_s, obs_d in tqdm(results, total=total, desc=desc, unit="pair", disable=not progress, leave=False):
         stamp, joints = meta.popleft()
         snapshots.append(Snapshot(stamp, obs_s, obs_d, joints))
@@ -314,7 +330,7 @@ def _stream_images(
             image, source = read_image(file), str(file)
         else:
             stamp, image, source = item
-        _check_resolution(image, entry, name, source)
+        check_resolution(image, _size(entry, name), source)
         stamps.append(int(stamp))
         yield image
 

@@ -54,6 +54,7 @@ def ordered_map(
     jobs: int = 1,
     window: int | None = None,
     preload: tuple[str, ...] = (),
+    initializer: Callable[[], None] | None = None,
 ) -> Iterator[R]:
     """``func`` over ``items`` in ``jobs`` processes, results in input order (module docstring).
 
@@ -63,6 +64,7 @@ def ordered_map(
         jobs: worker processes; 1 runs ``func`` here, without a pool.
         window: items in flight (default ``WINDOW_PER_JOB * jobs``).
         preload: modules the fork server imports once for all workers (e.g. ``("dcc_fg.detection",)``).
+        initializer: a module-level function each worker runs once before its first item.
     """
     if jobs < 1:
         raise ValueError(f"jobs must be >= 1, got {jobs}")
@@ -76,7 +78,7 @@ def ordered_map(
     if preload:
         ctx.set_forkserver_preload(list(preload))
     pending: deque[Future[R]] = deque()
-    with ProcessPoolExecutor(max_workers=jobs, mp_context=ctx) as pool:
+    with ProcessPoolExecutor(max_workers=jobs, mp_context=ctx, initializer=initializer) as pool:
         try:
             for item in items:
                 pending.append(pool.submit(func, item))
