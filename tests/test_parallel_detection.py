@@ -120,17 +120,20 @@ def test_load_dataset_gives_the_serial_detections_on_two_processes(
     _same(serial, pooled)
 
 
-def test_a_wrong_image_size_is_refused_alike_by_the_workers(rendered: dict[str, RenderedCalibration]) -> None:
-    """The workers that read the bag themselves check each image against the camchain's resolution and
-    raise the serial path's error, naming the message."""
-    r = rendered["ros2"]
+@pytest.mark.parametrize(("kind", "where"), [("ros2", r"topic .* at \d+ ns"), ("folder", r"cam1/\d+\.png")])
+def test_a_wrong_image_size_is_refused_alike_by_the_workers(
+    rendered: dict[str, RenderedCalibration], kind: str, where: str
+) -> None:
+    """The workers that read the bag or the files themselves check each image against the camchain's
+    resolution and raise the serial path's error, naming the message or the file."""
+    r = rendered[kind]
     chain = load_camchain(r.camchain)
     cam1 = chain["cam1"]
     w, h = cam1.camera.resolution
     chain["cam1"] = dataclasses.replace(cam1, camera=dataclasses.replace(cam1.camera, resolution=(w + 2, h)))
     messages = []
     for jobs in (1, 2):
-        with pytest.raises(ValueError, match=rf"topic .* at \d+ ns: image is {w}x{h} but the camchain's cam1") as e:
+        with pytest.raises(ValueError, match=rf"{where}: image is {w}x{h} but the camchain's cam1") as e:
             load_dataset(r.data, chain, r.target, progress=False, jobs=jobs)
         messages.append(str(e.value))
     assert messages[0] == messages[1]

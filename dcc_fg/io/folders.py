@@ -14,6 +14,7 @@ import logging
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -142,6 +143,17 @@ def read_image(path: str | Path) -> NDArray[np.generic]:
     return img
 
 
+class FilePairReference(NamedTuple):
+    """A pair of an image folder, not read: the static stamp (ns), the two image files, the joint angles
+    (rad) nearest in time or None, the dynamic stamp (ns)."""
+
+    timestamp_ns: int
+    static: Path
+    dynamic: Path
+    joints: NDArray[np.float64] | None
+    dynamic_ns: int
+
+
 class ImageFolder:
     """An image-folder dataset, paired but not loaded.
 
@@ -184,14 +196,24 @@ class ImageFolder:
     def __len__(self) -> int:
         return len(self._pairs)
 
-    def __iter__(self) -> Iterator[FramePair]:
-        """Yield the pairs in time order, reading the two images of each pair on demand."""
+    def references(self) -> list[FilePairReference]:
+        """The pairs in time order (that of :meth:`__iter__`) as their two files, not read: for readers
+        that read the images themselves (e.g. detection workers)."""
+        out = []
         for n, (ts, td) in enumerate(self._pairs):
             joints = None
             if self.joints is not None and self._joint_index is not None and self._joint_index[n] >= 0:
                 joints = self.joints[1][self._joint_index[n]].copy()
-            ps, pd = self.static_files[ts], self.dynamic_files[td]
-            yield FramePair(ts, read_image(ps), read_image(pd), joints, str(ps), str(pd), td)
+            out.append(FilePairReference(ts, self.static_files[ts], self.dynamic_files[td], joints, td))
+        return out
+
+    def __iter__(self) -> Iterator[FramePair]:
+        """Yield the pairs in time order, reading the two images of each pair on demand."""
+        for ref in self.references():
+            ps, pd = ref.static, ref.dynamic
+            yield FramePair(
+                ref.timestamp_ns, read_image(ps), read_image(pd), ref.joints, str(ps), str(pd), ref.dynamic_ns
+            )
 
 
 def read_image_folder(root: str | Path, tolerance_ns: int = DEFAULT_TOLERANCE_NS) -> ImageFolder:

@@ -30,7 +30,7 @@ from tqdm import tqdm
 
 from dcc_fg.data import CalibrationDataset, Snapshot
 from dcc_fg.detection import detect_target
-from dcc_fg.io.bags import BagImagePairs, BagTopicImages, PairReference
+from dcc_fg.io.bags import BagImagePairs, BagTopicImages
 from dcc_fg.io.camchain import CamchainEntry, load_camchain
 from dcc_fg.io.folders import (
     DYNAMIC_DIR,
@@ -47,10 +47,11 @@ from dcc_fg.sources.detections import read_detection_folder
 from dcc_fg.sources.parallel_detection import (
     CameraSize,
     Detector,
+    ImageReference,
     check_resolution,
-    detect_bag_pairs,
     detect_images,
     detect_pairs,
+    detect_referenced_pairs,
     pool_jobs,
 )
 from dcc_fg.sync import CameraStream
@@ -93,15 +94,20 @@ def _detect_frames(
             meta.append((fr.timestamp_ns, fr.joints))
             yield fr.static, fr.dynamic
 
-    def references() -> Iterator[PairReference]:
-        assert isinstance(frames, BagImagePairs)
-        for ref in frames.references():
-            meta.append((ref.static.stamp_ns, ref.joints))
-            yield ref
+    def references() -> Iterator[tuple[ImageReference, ImageReference]]:
+        if isinstance(frames, BagImagePairs):
+            for ref in frames.references():
+                meta.append((ref.static.stamp_ns, ref.joints))
+                yield ref.static, ref.dynamic
+        elif isinstance(frames, ImageFolder):
+            for pair in frames.references():
+                meta.append((pair.timestamp_ns, pair.joints))
+                yield pair.static, pair.dynamic
 
     snapshots = []
-    if isinstance(frames, BagImagePairs) and pool_jobs(detector, jobs) > 1:  # the workers read the bag
-        results = detect_bag_pairs(frames.path, references(), sizes, target, detector, jobs)
+    if isinstance(frames, BagImagePairs | ImageFolder) and pool_jobs(detector, jobs) > 1:  # workers read
+        bag = frames.path if isinstance(frames, BagImagePairs) else None
+        results = detect_referenced_pairs(bag, references(), sizes, target, detector, jobs)
     else:
         results = detect_pairs(images(), target, detector, jobs)
     for obs_s, obs_d in tqdm(results, total=total, desc=desc, unit="pair", disable=not progress, leave=False):

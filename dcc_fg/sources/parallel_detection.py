@@ -4,11 +4,11 @@ Two ways to feed the ``jobs`` workers (:func:`dcc_fg.util.parallel.ordered_map`:
 order kept, so the results are those of the serial loop bit for bit):
 
 * :func:`detect_pairs` / :func:`detect_images`: the images are decoded here and sent to the workers;
-* :func:`detect_bag_pairs`: only where each pair's messages are in the bag is sent
-  (:class:`~dcc_fg.io.bags.PairReference`); each worker opens the bag once and reads, decodes, checks
-  and detects its pairs itself, so no image crosses a process boundary and this process only hands out
-  references (reading and decoding were a fifth of the serial time, and pickling the images to the
-  workers cost as much again).
+* :func:`detect_referenced_pairs`: only where each pair's images are is sent (a bag's
+  :class:`~dcc_fg.io.bags.MessageReference` or an image file's path); each worker reads (opening a bag
+  once), decodes, checks and detects its pairs itself, so no image crosses a process boundary and this
+  process only hands out references (reading and decoding were a fifth of the serial time for bags and
+  more for PNG folders, and pickling the images to the workers cost as much again).
 
 The detector must be a module-level function to run in a pool (it is pickled by reference); any other
 callable (a lambda, a closure) runs serially, with a logged note. Pixels are those of the distorted
@@ -29,7 +29,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from dcc_fg.data import Observation
-from dcc_fg.io.bags import PairReference, bag_reader, fetch_image
+from dcc_fg.io.bags import MessageReference, bag_reader, fetch_image
+from dcc_fg.io.folders import read_image
 from dcc_fg.targets import TargetGeometry
 from dcc_fg.util.parallel import ordered_map
 
@@ -39,10 +40,14 @@ Detector = Callable[[NDArray[np.generic], TargetGeometry], Observation]
 PairTask = tuple[NDArray[np.generic], NDArray[np.generic], TargetGeometry, Detector]
 ImageTask = tuple[NDArray[np.generic], TargetGeometry, Detector]
 #: Modules the pool's fork server imports once for every worker.
-PRELOAD = ("dcc_fg.detection", "dcc_fg.io.bags")
+PRELOAD = ("dcc_fg.detection", "dcc_fg.io.bags", "dcc_fg.io.folders")
 #: A camera's name and its image size (width, height) in pixels, for :func:`check_resolution`.
 CameraSize = tuple[str, tuple[int, int]]
-BagPairTask = tuple[str, PairReference, tuple[CameraSize, CameraSize], TargetGeometry, Detector]
+#: Where an image is: a message of the task's bag, or an image file.
+ImageReference = MessageReference | Path
+ReferencedPairTask = tuple[
+    str | None, ImageReference, ImageReference, tuple[CameraSize, CameraSize], TargetGeometry, Detector
+]
 
 #: The bags a worker process has open (opened at its first task, closed at its exit).
 _OPEN_BAGS: dict[str, Any] = {}
@@ -85,14 +90,23 @@ def _open_bag(path: str) -> Any:
     return reader
 
 
-def read_and_detect_pair(task: BagPairTask) -> tuple[Observation, Observation]:
-    """Worker: read the pair's two images from the bag (by record time), check their sizes, detect."""
-    path, ref, sizes, target, detector = task
-    reader = _open_bag(path)
+def _read(bag: str | None, ref: ImageReference) -> tuple[NDArray[np.generic], str]:
+    """The image ``ref`` (a message of ``bag`` or a file) and how errors name it."""
+    if isinstance(ref, MessageReference):
+        if bag is None:
+            raise ValueError(f"{ref.topic}: a message reference needs its bag")
+        return fetch_image(_open_bag(bag), Path(bag), ref), ref.where(Path(bag))
+    return read_image(ref), str(ref)
+
+
+def read_and_detect_pair(task: ReferencedPairTask) -> tuple[Observation, Observation]:
+    """Worker: read the pair's two images (bag messages by record time, or files), check their sizes,
+    detect."""
+    bag, static, dynamic, sizes, target, detector = task
     out = []
-    for msg, size in zip((ref.static, ref.dynamic), sizes, strict=True):
-        image = fetch_image(reader, Path(path), msg)
-        check_resolution(image, size, msg.where(Path(path)))
+    for ref, size in zip((static, dynamic), sizes, strict=True):
+        image, where = _read(bag, ref)
+        check_resolution(image, size, where)
         out.append(detector(image, target))
     return out[0], out[1]
 
@@ -144,17 +158,19 @@ def detect_images(
     )
 
 
-def detect_bag_pairs(
-    path: Path,
-    refs: Iterable[PairReference],
+def detect_referenced_pairs(
+    bag: Path | None,
+    refs: Iterable[tuple[ImageReference, ImageReference]],
     sizes: tuple[CameraSize, CameraSize],
     target: TargetGeometry,
     detector: Detector,
     jobs: int,
 ) -> Iterator[tuple[Observation, Observation]]:
-    """Detections of the bag pairs ``refs`` (in their order), each read, size-checked (``sizes`` of the
-    static and the dynamic camera) and detected by one of ``jobs`` worker processes."""
-    tasks = ((str(path), ref, sizes, target, detector) for ref in refs)
+    """Detections of the (static, dynamic) image pairs ``refs`` (messages of ``bag`` or image files), in
+    their order, each read, size-checked (``sizes`` of the static and the dynamic camera) and detected by
+    one of ``jobs`` worker processes."""
+    name = None if bag is None else str(bag)
+    tasks = ((name, s, d, sizes, target, detector) for s, d in refs)
     return ordered_map(
         read_and_detect_pair, tasks, pool_jobs(detector, jobs), preload=PRELOAD, initializer=one_thread_per_worker
     )
