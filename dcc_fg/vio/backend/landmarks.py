@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 
 import gtsam
 import numpy as np
+from numpy.typing import NDArray
 
 from dcc_fg.data.vio import TrackFrame
 from dcc_fg.vio.backend.keys import landmark_key
@@ -40,38 +41,50 @@ def validate_frames(frames: list[TrackFrame], source: str = "tracks") -> None:
                 raise ValueError(f"{source}: frame {i} {cam}: non-finite coordinates")
 
 
+def triangulate_batch(T_Wc: FloatArray, xy: FloatArray) -> FloatArray:
+    """Linear (DLT) triangulation of N points, each from M camera poses ``T_Wc`` (N, M, 4, 4) and
+    normalized ``xy`` (N, M, 2); (N, 3) points in W, NaN where the solution is at infinity."""
+    R_cW = np.swapaxes(T_Wc[..., :3, :3], -1, -2)
+    P = np.concatenate([R_cW, -R_cW @ T_Wc[..., :3, 3:4]], axis=-1)  # (N, M, 3, 4) = [R_cW | t_cW]
+    A = np.concatenate([xy[..., :1] * P[..., 2, :] - P[..., 0, :], xy[..., 1:2] * P[..., 2, :] - P[..., 1, :]], axis=1)
+    _, _, vt = np.linalg.svd(A)
+    h = vt[:, -1, :]
+    out = np.full((h.shape[0], 3), np.nan)
+    finite = np.abs(h[:, 3]) >= 1e-12
+    out[finite] = h[finite, :3] / h[finite, 3:4]
+    return out
+
+
 def triangulate(T_Wc: FloatArray, xy: FloatArray) -> FloatArray:
     """Linear (DLT) triangulation of one point from camera poses T_Wc (M, 4, 4) and normalized xy (M, 2)."""
-    R_cW = np.transpose(T_Wc[:, :3, :3], (0, 2, 1))
-    P = np.concatenate([R_cW, -R_cW @ T_Wc[:, :3, 3:4]], axis=2)  # (M, 3, 4) = [R_cW | t_cW]
-    A = np.concatenate([xy[:, :1] * P[:, 2] - P[:, 0], xy[:, 1:2] * P[:, 2] - P[:, 1]], axis=0)
-    _, _, vt = np.linalg.svd(A)
-    h = vt[-1]
-    if abs(h[3]) < 1e-12:
-        return np.full(3, np.nan)
-    return h[:3] / h[3]
+    return triangulate_batch(T_Wc[None], xy[None])[0]
+
+
+def landmarks_are_good(p: FloatArray, T_Wc: FloatArray, xy: FloatArray, options: VioOptions) -> NDArray[np.bool_]:
+    """:func:`landmark_is_good` of N points ``p`` (N, 3) seen at ``xy`` (N, M, 2) from ``T_Wc`` (N, M, 4, 4)."""
+    o = options
+    ok = np.all(np.isfinite(p), axis=1)
+    q = np.where(ok[:, None], p, 0.0)
+    rays = q[:, None, :] - T_Wc[..., :3, 3]  # (N, M, 3)
+    dist = np.linalg.norm(rays, axis=2)
+    ok &= ~np.any((dist > o.max_depth) | (dist < 0.2), axis=1)
+    p_c = np.einsum("nmji,nmj->nmi", T_Wc[..., :3, :3], rays)
+    ok &= ~np.any(p_c[..., 2] <= 0.1, axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        err = np.linalg.norm(p_c[..., :2] / p_c[..., 2:3] - xy, axis=2)
+        u = rays / dist[..., None]
+    ok &= ~(np.max(np.where(np.isfinite(err), err, np.inf), axis=1) > o.triangulation_gate * o.sigma)
+    cosang = np.clip(np.einsum("nmi,nki->nmk", u, u), -1.0, 1.0)
+    with np.errstate(invalid="ignore"):
+        parallax = np.degrees(np.arccos(np.nanmin(cosang.reshape(len(p), -1), axis=1)))
+    return ok & (parallax >= o.min_parallax_deg)
 
 
 def landmark_is_good(p: FloatArray, T_Wc: FloatArray, xy: FloatArray, options: VioOptions) -> bool:
     """Quality checks of a triangulated point ``p`` (W) seen at ``xy`` (M, 2) from ``T_Wc`` (M, 4, 4):
     finite; 0.2 m <= distance <= ``max_depth``; depth > 0.1 m in every camera; reprojection error
     within ``triangulation_gate * sigma``; largest angle between the rays >= ``min_parallax_deg``."""
-    o = options
-    if not np.all(np.isfinite(p)):
-        return False
-    centres = T_Wc[:, :3, 3]
-    rays = p - centres
-    dist = np.linalg.norm(rays, axis=1)
-    if np.any(dist > o.max_depth) or np.any(dist < 0.2):
-        return False
-    p_c = np.einsum("nji,nj->ni", T_Wc[:, :3, :3], rays)
-    if np.any(p_c[:, 2] <= 0.1):
-        return False
-    if np.max(np.linalg.norm(p_c[:, :2] / p_c[:, 2:3] - xy, axis=1)) > o.triangulation_gate * o.sigma:
-        return False
-    u = rays / dist[:, None]
-    cosang = np.clip(u @ u.T, -1.0, 1.0)
-    return bool(np.degrees(np.arccos(cosang.min())) >= o.min_parallax_deg)
+    return bool(landmarks_are_good(np.asarray(p, float)[None], T_Wc[None], xy[None], options)[0])
 
 
 def outside_gate(T_cW: FloatArray, p_W: FloatArray, z: FloatArray, max_error: float) -> bool:
@@ -79,6 +92,41 @@ def outside_gate(T_cW: FloatArray, p_W: FloatArray, z: FloatArray, max_error: fl
     ``max_error`` (normalized units) from the observation ``z``."""
     p_c = T_cW[:3, :3] @ p_W + T_cW[:3, 3]
     return bool(p_c[2] <= 0 or np.linalg.norm(p_c[:2] / p_c[2] - z) > max_error)
+
+
+def _attempts(obs: list[Observation]) -> list[list[Observation]]:
+    """The observation sets a track is triangulated from, in order: its static observations, then all of
+    them (only when they add a gimbal view); a set needs two distinct (keyframe, camera) views."""
+    static_obs = [ob for ob in obs if ob[1] == 0]
+    out = []
+    for use in (static_obs, obs):
+        if len({(ob[0], ob[1]) for ob in use}) < 2 or (use is obs and len(use) == len(static_obs)):
+            continue
+        out.append(use)
+    return out
+
+
+def triangulate_tracks(
+    tracks: list[list[Observation]], camera_pose: Callable[[int, int], FloatArray], options: VioOptions
+) -> list[tuple[FloatArray, bool]]:
+    """:func:`triangulate_track` of many tracks, the DLT and the checks batched over the tracks with the
+    same number of observations (the same arithmetic per track, without a Python loop per point)."""
+    out: list[tuple[FloatArray, bool]] = [(np.full(3, np.nan), False) for _ in tracks]
+    attempts = [_attempts(obs) for obs in tracks]
+    for stage in (0, 1):
+        # tracks still without a good point that have a set for this stage, grouped by its size
+        groups: dict[int, list[int]] = {}
+        for n, sets in enumerate(attempts):
+            if stage < len(sets) and not out[n][1]:
+                groups.setdefault(len(sets[stage]), []).append(n)
+        for members in groups.values():
+            T_Wc = np.array([[camera_pose(kk, cam) for kk, cam, _ in attempts[n][stage]] for n in members])
+            xy = np.array([[z for _, _, z in attempts[n][stage]] for n in members])
+            points = triangulate_batch(T_Wc, xy)
+            good = landmarks_are_good(points, T_Wc, xy, options)
+            for n, point, ok in zip(members, points, good, strict=True):
+                out[n] = (point, bool(ok))
+    return out
 
 
 def triangulate_track(
@@ -90,18 +138,7 @@ def triangulate_track(
     cameras together give a stereo baseline (what gives landmarks while the body stands still).
     ``camera_pose(k, cam)`` is ``T_Wc`` of camera ``cam`` at keyframe ``k``.
     """
-    p, ok = np.full(3, np.nan), False
-    static_obs = [ob for ob in obs if ob[1] == 0]
-    for use in (static_obs, obs):
-        if len({(ob[0], ob[1]) for ob in use}) < 2 or (use is obs and len(use) == len(static_obs)):
-            continue
-        T_Wc = np.array([camera_pose(kk, cam) for kk, cam, _ in use])
-        xy = np.array([z for _, _, z in use])
-        p = triangulate(T_Wc, xy)
-        ok = landmark_is_good(p, T_Wc, xy, options)
-        if ok:
-            break
-    return p, ok
+    return triangulate_tracks([obs], camera_pose, options)[0]
 
 
 @dataclass
@@ -177,6 +214,7 @@ class LandmarkMap:
                 memo[(kk, cam)] = camera_pose(kk, cam)
             return memo[(kk, cam)]
 
+        ready: list[tuple[int, int]] = []  # (track id, keyframes it spans), in track order
         for tid in list(self.tracks):
             tr = self.tracks[tid]
             tr.obs = [ob for ob in tr.obs if keyframe_times[ob[0]] >= window_start_ns]
@@ -189,14 +227,19 @@ class LandmarkMap:
                 if len(kfs) < o.min_track_keyframes:
                     del self.tracks[tid]
                 continue
-            if len(kfs) < o.min_track_keyframes or len(made) >= o.max_new_landmarks:
-                continue
-            p, ok = triangulate_track(tr.obs, pose, o)
+            if len(kfs) >= o.min_track_keyframes:
+                ready.append((tid, len(kfs)))
+        # every ready track is triangulated at once (batched); in track order, the good ones become
+        # landmarks until max_new_landmarks are made; the tracks after that are left as they are
+        results = triangulate_tracks([self.tracks[tid].obs for tid, _ in ready], pose, o)
+        for (tid, n_kf), (p, ok) in zip(ready, results, strict=True):
+            if len(made) >= o.max_new_landmarks:
+                break
             if not ok:
-                if len(kfs) > 3 * o.min_track_keyframes:
+                if n_kf > 3 * o.min_track_keyframes:
                     del self.tracks[tid]  # never converges: give up on this track
                 continue
-            made.append(NewLandmark(self.add(tid, p, t_ns), p, tr.obs))
+            made.append(NewLandmark(self.add(tid, p, t_ns), p, self.tracks[tid].obs))
             del self.tracks[tid]
         return made
 
