@@ -22,7 +22,7 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
     ("io: files and bags, no estimator types", ("dcc_fg.io",)),
     (
         "model/data: calibration model, measurements, targets, stream pairing",
-        ("dcc_fg.model", "dcc_fg.cluster", "dcc_fg.data", "dcc_fg.targets", "dcc_fg.sync"),
+        ("dcc_fg.model", "dcc_fg.cluster", "dcc_fg.cluster_data", "dcc_fg.data", "dcc_fg.targets", "dcc_fg.sync"),
     ),
     ("sim: synthetic data and ground truth", ("dcc_fg.sim",)),
     ("detection: target detection in images", ("dcc_fg.detection",)),
@@ -33,6 +33,8 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
             "dcc_fg.calibrate",
             "dcc_fg.calibration_health",
             "dcc_fg.calibration_graph",
+            "dcc_fg.cluster_calibration",
+            "dcc_fg.cluster_init",
             "dcc_fg.covariance",
             "dcc_fg.init",
             "dcc_fg.auto_init",

@@ -11,6 +11,8 @@ from typing import Any
 import numpy as np
 
 from dcc_fg.commands import common
+from dcc_fg.commands.simulate_cluster import CLUSTER_HELP, simulate_cluster_command
+from dcc_fg.sim.cluster_scene import PRESETS as CLUSTER_PRESETS
 from dcc_fg.sim.flight_bag import write_flight
 from dcc_fg.sim.mechanism_family import describe, family_member
 from dcc_fg.sim.render import RenderConfig
@@ -157,6 +159,8 @@ SIMULATE_OUT_HELP = (
 
 def simulate_calibration_command(args: argparse.Namespace) -> int:
     """``dcc-fg simulate calibration``."""
+    if getattr(args, "cluster", None) is not None:
+        return simulate_cluster_command(args)
     render = RenderConfig(noise_sigma=args.noise, blur_sigma_px=args.blur)
     seed = args.random_mechanism
     if seed is not None:
@@ -300,6 +304,7 @@ def add_calibration_parser(sub: Any, parent: argparse.ArgumentParser) -> None:
         "the truth at every image's true exposure time under 'images' and the timing under 'motion')",
     )
     add_timing_flags(p, "; with --motion continuous only")
+    p.add_argument("--cluster", choices=CLUSTER_PRESETS, default=None, metavar="PRESET", help=CLUSTER_HELP)
 
 
 def add_flight_parser(sub: Any, parent: argparse.ArgumentParser) -> None:
