@@ -26,7 +26,7 @@ import sys
 import numpy as np
 import yaml
 
-from dcc_fg.commands import batch, calibrate, common, config, demo, evaluate, export, intrinsics, simulate, vio
+from dcc_fg.commands import batch, calibrate, common, config, demo, evaluate, export, intrinsics, plan, simulate, vio
 from dcc_fg.util.errors import NUMERICAL_ERRORS, EstimatorError
 from dcc_fg.util.health import EXIT_UNHEALTHY, UnhealthyResultError
 from dcc_fg.util.logs import configure_logging
@@ -73,6 +73,7 @@ def build_parser() -> argparse.ArgumentParser:
     config.add_parser(sub, parent)
     export.add_parser(sub, parent)
     batch.add_parser(sub, parent)
+    plan.add_parser(sub, parent)
     return p
 
 

@@ -272,6 +272,17 @@ def run_summary_table(stats: dict[str, Any]) -> str:
         )
     elif stats.get("covariance", "ok") != "ok":
         lines.append(f"T_ds 1-sigma: not available ({stats['covariance']})")
+    acc = stats.get("accuracy_over_range")
+    if acc and acc.get("snapshot", {}).get("points") and acc.get("kinematics", {}).get("points"):
+        s, k = acc["snapshot"], acc["kinematics"]
+        rng = ", ".join(f"{lo:.1f}:{hi:.1f}" for lo, hi in acc["range_deg"])
+        lines.append(
+            f"predicted T_ds 1-sigma over the range {rng} deg ({acc['range_source']}): at a snapshot there worst "
+            f"{s['worst_rotation_mrad']:.3g} mrad / {s['worst_translation_mm']:.3g} mm (mean "
+            f"{s['mean_rotation_mrad']:.3g} / {s['mean_translation_mm']:.3g}); kinematics alone worst "
+            f"{k['worst_rotation_mrad']:.3g} mrad / {k['worst_translation_mm']:.3g} mm (dcc-fg plan proposes what to "
+            "record next)"
+        )
     return "\n".join(lines)
 
 

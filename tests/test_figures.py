@@ -251,7 +251,7 @@ def test_calibrate_cli_report(tmp_path: Path, capsys: pytest.CaptureFixture[str]
     assert (out / "calibration.yaml").exists() and _pdf_pages(out / "report.pdf") == 1 + 6
     assert sorted(p.name for p in out.glob("calibration_*.png")) == sorted(
         f"calibration_{n}.png"
-        for n in ("residuals", "snapshot_errors", "coverage", "parameters", "chain", "residual_map")
+        for n in ("residuals", "snapshot_errors", "coverage", "parameters", "chain", "residual_map", "accuracy")
     )
     table = report.parameter_table(load_calibration(out / "calibration.yaml"))
     assert table.count("gauge-fixed") == 5 and "dh2.alpha" in table  # L = 2 encoderless: 5 entries held

@@ -223,10 +223,12 @@ def test_rerun_replaces_the_previous_set(pipeline: Pipeline, inputs, tmp_path, c
     (out / "notes.txt").write_text("mine\n")
     assert main(calibrate_argv(inputs, out)) == 0
     names = sorted(p.name for p in out.iterdir())
-    assert names == [MANIFEST, "calibration.yaml", "joint_angles.csv", "notes.txt", "summary.json"]
+    assert names == [
+        MANIFEST, "calibration.yaml", "joint_angles.csv", "kinematics_information.npz", "notes.txt", "summary.json"
+    ]  # fmt: skip
     manifest = json.loads((out / MANIFEST).read_text())
     assert manifest["command"] == "calibrate"
-    assert manifest["files"] == ["calibration.yaml", "joint_angles.csv", "summary.json"]
+    assert manifest["files"] == ["calibration.yaml", "joint_angles.csv", "kinematics_information.npz", "summary.json"]
     assert (out / "notes.txt").read_text() == "mine\n" and no_staging_left(out, tmp_path)
 
 
@@ -240,7 +242,9 @@ def test_rerun_into_a_folder_of_an_older_version(pipeline: Pipeline, inputs, tmp
     (out / "README").write_text("kept\n")
     assert main(calibrate_argv(inputs, out)) == 0
     names = sorted(p.name for p in out.iterdir())
-    assert names == [MANIFEST, "README", "calibration.yaml", "joint_angles.csv", "summary.json"]
+    assert names == [
+        MANIFEST, "README", "calibration.yaml", "joint_angles.csv", "kinematics_information.npz", "summary.json"
+    ]  # fmt: skip
 
 
 def test_failure_while_writing_leaves_out_unchanged(

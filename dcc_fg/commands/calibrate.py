@@ -32,6 +32,9 @@ from dcc_fg.io.camchain import CamchainEntry
 from dcc_fg.io.output_set import OutputSet
 from dcc_fg.io.outputs import plain, write_text_atomic
 from dcc_fg.model import GimbalCalibration, load_calibration
+from dcc_fg.planning.predict import INFORMATION_FILE, RangeAccuracy, accuracy_table, range_accuracy
+from dcc_fg.plots.accuracy_map import accuracy_figure
+from dcc_fg.plots.common import save_figure
 from dcc_fg.plots.output import write_calibration_outputs
 from dcc_fg.report import parameter_table, run_summary_table
 from dcc_fg.sources.dataset import load_dataset, load_streams
@@ -276,10 +279,18 @@ def write_calibration_files(
     return paths
 
 
-def write_report(out: Path, result: CalibrationResult, data: CalibrationDataset) -> list[Path]:
-    """The calibration figures as ``OUT/calibration_*.png`` and ``OUT/report.pdf``; the paths written."""
+def write_report(
+    out: Path, result: CalibrationResult, data: CalibrationDataset, accuracy: RangeAccuracy | None = None
+) -> list[Path]:
+    """The calibration figures as ``OUT/calibration_*.png`` and ``OUT/report.pdf``; with ``accuracy`` also its
+    table in the report and ``OUT/calibration_accuracy.png`` (:mod:`dcc_fg.planning.predict`). The paths written."""
     text = run_summary_table(result.calibration.statistics) + "\n\n" + parameter_table(result.calibration)
-    return write_calibration_outputs(out, result, text, target_points=data.target_points, data=data)
+    if accuracy is not None:
+        text += "\n\n" + accuracy_table(accuracy)
+    paths = write_calibration_outputs(out, result, text, target_points=data.target_points, data=data)
+    if accuracy is not None:
+        paths.append(save_figure(accuracy_figure(accuracy, result.joint_angles), out / "calibration_accuracy.png"))
+    return paths
 
 
 def write_calibration_set(
@@ -296,9 +307,14 @@ def write_calibration_set(
     figures and report) into the staging folder of ``outputs``. Returns the final paths."""
     health = calibration_health(result=result, data=data, reader_report=reader_report)
     health_block = common.judge_health(health, config.output.accept_unhealthy)
+    accuracy = range_accuracy(result, data)  # predicted T_ds accuracy over the range (None for validate)
+    if accuracy is not None:
+        result.calibration.statistics["accuracy_over_range"] = accuracy[1].summary()
     paths = write_calibration_files(outputs.path, result, reader_report, provenance, health_block)
+    if accuracy is not None:
+        paths.append(accuracy[0].save(outputs.path / INFORMATION_FILE))
     if config.output.report:
-        paths += write_report(outputs.path, result, data)
+        paths += write_report(outputs.path, result, data, accuracy[1] if accuracy is not None else None)
     return [outputs.final(p) for p in paths]
 
 
