@@ -576,3 +576,17 @@ def test_the_calibration_refuses_an_n_camera_initial_guess() -> None:
     cal = GimbalCalibration.from_dict(two_on_one_chain(), "g.yaml")
     with pytest.raises(ValueError, match="g.yaml: a 3-camera cluster .*N-camera calibration is not supported yet"):
         calibrate(None, cal)  # type: ignore[arg-type]
+
+
+def test_calibrate_refuses_an_n_camera_gimbal_file_before_reading_the_data(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``dcc-fg calibrate --gimbal`` with a 3-camera file: exit 2 naming the file and the Python API, before the
+    data are looked at (the data folder here does not even exist) and without an output folder."""
+    cal_path = _write(tmp_path / "rig.yaml", stereo_plus_gimbal())
+    out = tmp_path / "cal"
+    argv = ["calibrate", str(tmp_path / "no_data"), "--gimbal", str(cal_path), "--out", str(out), "-q"]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert "rig.yaml: a 3-camera cluster" in err and "calibrate_cluster" in err and "no_data" not in err
+    assert not out.exists()

@@ -433,6 +433,10 @@ def run_calibrate(
     inspected)."""
     if config.solver.mode not in ("encoderless", "encoders"):
         raise ConfigError(f"solver.mode must be encoderless or encoders for calibrate, got {config.solver.mode!r}")
+    if (
+        inputs.gimbal is not None and Path(inputs.gimbal).is_file()
+    ):  # an N-camera --gimbal file: refused before the work
+        load_calibration(inputs.gimbal).require_two_cameras("calibration")
     outputs = OutputSet(out, "calibrate", inputs.by_option(config_file))
     with outputs:
         report: dict[str, Any] = {}
@@ -472,9 +476,9 @@ def run_validate(
     ``out`` as one output set (see :func:`run_calibrate`, also for ``rerun``)."""
     if inputs.calibration is None:
         raise ValueError("validate needs --calibration")
+    cal = load_calibration(inputs.calibration).require_two_cameras("validation", allow_subset=True)  # before the work
     outputs = OutputSet(out, "validate", inputs.by_option(config_file))
     with outputs:
-        cal = load_calibration(inputs.calibration)
         report: dict[str, Any] = {}
         camchain = validation_camchain(inputs, cal)
         data = load_calibration_data(inputs, camchain, config.reader, progress, report)
