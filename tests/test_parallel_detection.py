@@ -56,6 +56,19 @@ def test_ordered_map_keeps_order_bounds_memory_and_raises_in_place() -> None:
         for r in ordered_map(_fail_at_7, range(12), jobs=2):
             got.append(r)
     assert got == list(range(7))  # everything before the bad item, in order
+    # in chunks of 3 items per task: the same order, at most window * chunk items in flight, and the
+    # bad item still raises at its own place (items 6 of its chunk [6, 7, 8] is yielded first)
+    read.clear()
+    out, ahead = [], []
+    for r in ordered_map(_slow_square, items(20), jobs=2, window=2, chunk=3):
+        out.append(r)
+        ahead.append(len(read) - len(out))
+    assert out == [i * i for i in range(20)] and max(ahead) <= 2 * 3
+    got = []
+    with pytest.raises(ValueError, match="item 7 is bad"):
+        for r in ordered_map(_fail_at_7, range(12), jobs=2, chunk=3):
+            got.append(r)
+    assert got == list(range(7))
     assert list(ordered_map(_slow_square, iter(range(6)), jobs=1)) == [i * i for i in range(6)]
     assert resolve_jobs(0) == resolve_jobs(None) == usable_cores() >= 1 and resolve_jobs(3) == 3
     with pytest.raises(ValueError, match="--jobs must be >= 0"):

@@ -41,6 +41,9 @@ PairTask = tuple[NDArray[np.generic], NDArray[np.generic], TargetGeometry, Detec
 ImageTask = tuple[NDArray[np.generic], TargetGeometry, Detector]
 #: Modules the pool's fork server imports once for every worker.
 PRELOAD = ("dcc_fg.detection", "dcc_fg.io.bags", "dcc_fg.io.folders")
+#: Pairs per pool task when the workers read the images themselves (a task is then a few hundred bytes:
+#: one round trip through the pool per pair cost the main process ~0.75 ms, a quarter of a core).
+REFERENCE_CHUNK = 8
 #: A camera's name and its image size (width, height) in pixels, for :func:`check_resolution`.
 CameraSize = tuple[str, tuple[int, int]]
 #: Where an image is: a message of the task's bag, or an image file.
@@ -172,5 +175,10 @@ def detect_referenced_pairs(
     name = None if bag is None else str(bag)
     tasks = ((name, s, d, sizes, target, detector) for s, d in refs)
     return ordered_map(
-        read_and_detect_pair, tasks, pool_jobs(detector, jobs), preload=PRELOAD, initializer=one_thread_per_worker
+        read_and_detect_pair,
+        tasks,
+        pool_jobs(detector, jobs),
+        preload=PRELOAD,
+        initializer=one_thread_per_worker,
+        chunk=REFERENCE_CHUNK,
     )

@@ -48,6 +48,39 @@ def resolve_jobs(jobs: int | None) -> int:
     return int(jobs)
 
 
+def run_chunk(task: tuple[Callable[[T], R], list[T]]) -> tuple[list[R], BaseException | None]:
+    """Worker: ``func`` over a chunk of items, in order; stops at the first exception and returns the
+    results before it with the exception (so the caller can yield those, then raise it in place)."""
+    func, chunk = task
+    out: list[R] = []
+    for item in chunk:
+        try:
+            out.append(func(item))
+        except Exception as exc:  # noqa: BLE001 - handed back to the caller, raised there at its item
+            return out, exc
+    return out, None
+
+
+def _chunks(items: Iterable[T], size: int) -> Iterator[list[T]]:
+    """``items`` in lists of ``size`` (the last one shorter), read lazily."""
+    chunk: list[T] = []
+    for item in items:
+        chunk.append(item)
+        if len(chunk) == size:
+            yield chunk
+            chunk = []
+    if chunk:
+        yield chunk
+
+
+def _take(fut: Future[tuple[list[R], BaseException | None]]) -> Iterator[R]:
+    """The results of a finished chunk, then its exception (if an item raised one)."""
+    done, exc = fut.result()
+    yield from done
+    if exc is not None:
+        raise exc
+
+
 def ordered_map(
     func: Callable[[T], R],
     items: Iterable[T],
@@ -55,19 +88,25 @@ def ordered_map(
     window: int | None = None,
     preload: tuple[str, ...] = (),
     initializer: Callable[[], None] | None = None,
+    chunk: int = 1,
 ) -> Iterator[R]:
     """``func`` over ``items`` in ``jobs`` processes, results in input order (module docstring).
 
     Args:
         func: a module-level function (pickled by reference); its argument and result are pickled.
-        items: read lazily, at most ``window`` ahead of the results yielded.
+        items: read lazily, at most ``window`` tasks ahead of the results yielded.
         jobs: worker processes; 1 runs ``func`` here, without a pool.
-        window: items in flight (default ``WINDOW_PER_JOB * jobs``).
+        window: tasks in flight (default ``WINDOW_PER_JOB * jobs``).
         preload: modules the fork server imports once for all workers (e.g. ``("dcc_fg.detection",)``).
         initializer: a module-level function each worker runs once before its first item.
+        chunk: items per task (a worker gets ``chunk`` consecutive items at once): fewer round trips
+            through the pool when each item is quick; at most ``window * chunk`` items are in flight. An
+            exception is still raised at its own item, after the results before it.
     """
     if jobs < 1:
         raise ValueError(f"jobs must be >= 1, got {jobs}")
+    if chunk < 1:
+        raise ValueError(f"chunk must be >= 1, got {chunk}")
     if jobs == 1:
         yield from map(func, items)
         return
@@ -77,15 +116,16 @@ def ordered_map(
     ctx = multiprocessing.get_context("forkserver")
     if preload:
         ctx.set_forkserver_preload(list(preload))
-    pending: deque[Future[R]] = deque()
+    pending: deque[Future[tuple[list[R], BaseException | None]]] = deque()
+
     with ProcessPoolExecutor(max_workers=jobs, mp_context=ctx, initializer=initializer) as pool:
         try:
-            for item in items:
-                pending.append(pool.submit(func, item))
+            for part in _chunks(items, chunk):
+                pending.append(pool.submit(run_chunk, (func, part)))
                 if len(pending) >= limit:
-                    yield pending.popleft().result()
+                    yield from _take(pending.popleft())
             while pending:
-                yield pending.popleft().result()
+                yield from _take(pending.popleft())
         finally:
             for fut in pending:
                 fut.cancel()
