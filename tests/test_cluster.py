@@ -590,3 +590,10 @@ def test_calibrate_refuses_an_n_camera_gimbal_file_before_reading_the_data(
     err = capsys.readouterr().err
     assert "rig.yaml: a 3-camera cluster" in err and "calibrate_cluster" in err and "no_data" not in err
     assert not out.exists()
+
+
+def test_init_file_needs_a_cluster(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """``--init file`` is the N-camera start from the ``--cluster`` file: without one it is refused by name."""
+    argv = ["calibrate", str(tmp_path), "--init", "file", "--joints", "2", "--out", str(tmp_path / "c"), "-q"]
+    assert main(argv) == 2
+    assert "--init file starts an N-camera calibration from its --cluster file: give --cluster" in capsys.readouterr().err

@@ -25,6 +25,7 @@ import yaml
 from dcc_fg.calibrate import CalibrationOptions, CalibrationResult, calibrate
 from dcc_fg.calibration_health import calibration_health
 from dcc_fg.commands import common
+from dcc_fg.commands.calibrate_cluster import add_cluster_flags, calibrate_cluster_command, wants_cluster
 from dcc_fg.data import CalibrationDataset, common_corners
 from dcc_fg.degeneracy import NOMINALS
 from dcc_fg.global_fit import calibrate_global
@@ -119,6 +120,8 @@ class InitOptions:
     search: str = "global"
 
     def __post_init__(self) -> None:
+        if self.method == "file":
+            raise ValueError("--init file starts an N-camera calibration from its --cluster file: give --cluster")
         if self.method not in (None, "auto", "gimbal"):
             raise ValueError(f"method must be auto or gimbal, got {self.method!r}")
         if self.search not in ("global", "single"):
@@ -533,9 +536,10 @@ def add_solver_flags(c: argparse.ArgumentParser) -> None:
     """The initial-value and solver options of ``calibrate``."""
     opt = common.add_option
     opt(c, "--joints", "init.joints", type=int, help="number of joints L when no --gimbal is given")
-    opt(c, "--init", "init.method", choices=["auto", "gimbal"], help="initial values: 'gimbal' reads --gimbal; "
+    opt(c, "--init", "init.method", choices=["auto", "gimbal", "file"], help="initial values: 'gimbal' reads --gimbal; "
         "'auto' estimates axes, DH links, mounts and joint angles from per-snapshot PnP (needs --joints). Default: "
-        "gimbal if --gimbal is given, else auto")  # fmt: skip
+        "gimbal if --gimbal is given, else auto. With --cluster: auto (default) or file (the --cluster file's "
+        "values)")  # fmt: skip
     opt(c, "--search", "init.search", choices=["global", "single"], help="global (default): also solve from every "
         "automatic start (distinct minima of the axis fit) and keep the lowest cost, reporting an ambiguity when "
         "another solution fits as well; single: solve from --gimbal alone")  # fmt: skip
@@ -575,6 +579,7 @@ def add_parsers(sub: Any, parent: argparse.ArgumentParser) -> None:
     )  # fmt: skip
     c.add_argument("--gimbal", help="initial kinematics YAML (joints, tau_s, tau_d, dh; rad and m)")
     add_solver_flags(c)
+    add_cluster_flags(c)  # --cluster, --mounts: N-camera clusters (dcc_fg/commands/calibrate_cluster.py)
     c.add_argument("--out", default="dcc_fg_calibration", help="output folder for calibration.yaml, joint_angles.csv "
                    f"(ns, rad) and summary.json (default ./dcc_fg_calibration). {common.OUT_FOLDER_HELP}")  # fmt: skip
     add_reader_flags(c)
@@ -600,6 +605,8 @@ def add_parsers(sub: Any, parent: argparse.ArgumentParser) -> None:
 
 
 def calibrate_command(args: argparse.Namespace) -> int:
+    if wants_cluster(args):  # N cameras: --cluster, or --camchain with --mounts
+        return calibrate_cluster_command(args)
     rerun = common.rerun_options(args)
     config = common.effective_config(args, CalibrateConfig, "calibrate")
     inputs = CalibrationInputs(args.data, camchain=args.camchain, target=args.target, gimbal=args.gimbal)

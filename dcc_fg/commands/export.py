@@ -143,7 +143,7 @@ def export_urdf(args: argparse.Namespace, cal_path: Path) -> list[Path]:
     limits = None
     notes = [_header(cal_path, "urdf")]
     if n_joints and csv is not None:
-        _, angles = read_joint_angles(csv, n_joints, str(cal_path))
+        _, angles = read_joint_angles(csv, n_joints, str(cal_path), allow_unseen=True)
         limits = observed_limits(angles, margin)
         where = f"joint limits: the observed range of {len(angles)} rows of {csv.resolve()}"
         notes.append(where + (f", widened by {margin:g} rad" if margin else ""))

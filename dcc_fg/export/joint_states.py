@@ -36,8 +36,13 @@ def expected_header(n_joints: int) -> list[str]:
     return ["timestamp_ns", *(f"theta_{k + 1}" for k in range(n_joints))]
 
 
-def read_joint_angles(path: str | Path, n_joints: int, calibration: str) -> tuple[IntArray, FloatArray]:
+def read_joint_angles(
+    path: str | Path, n_joints: int, calibration: str, allow_unseen: bool = False
+) -> tuple[IntArray, FloatArray]:
     """A ``joint_angles.csv`` of ``dcc-fg calibrate`` / ``validate`` / ``vio`` for an L-joint calibration.
+
+    ``allow_unseen``: NaN angles are kept (``dcc-fg calibrate --cluster`` writes NaN for a chain that no
+    camera saw in a snapshot); the other angles are checked as always.
 
     Returns:
         (N,) int64 stamps (ns, exact) and (N, L) joint angles (rad), in the file's row order.
@@ -83,7 +88,8 @@ def read_joint_angles(path: str | Path, n_joints: int, calibration: str) -> tupl
     if not stamps:
         raise ValueError(f"{path}: no rows after the header {','.join(want)}")
     angles = np.array(rows, dtype=float).reshape(len(rows), n_joints)
-    validate.check_joint_angles(angles, str(path), line_of_row)
+    validate.check_joint_angles(np.where(np.isnan(angles), 0.0, angles) if allow_unseen else angles, str(path),
+                                line_of_row)  # fmt: skip
     return np.array(stamps, dtype=np.int64), angles
 
 

@@ -141,11 +141,15 @@ def _link_offset(dh_row: FloatArray) -> tuple[tuple[float, float, float], tuple[
 
 def observed_limits(angles: FloatArray, margin: float = 0.0) -> FloatArray:
     """(L, 2) joint limits (rad): the smallest and largest angle of each joint in ``angles`` (N, L),
-    widened by ``margin`` (rad) on both sides."""
+    widened by ``margin`` (rad) on both sides. NaN angles (unseen) are left out; a joint without any
+    finite angle gets +-pi."""
     a = np.asarray(angles, dtype=float)
     if a.ndim != 2 or a.shape[0] == 0:
         raise ValueError(f"observed_limits needs (N, L) joint angles with N >= 1, got shape {a.shape}")
-    return np.column_stack([a.min(axis=0) - margin, a.max(axis=0) + margin])
+    seen = np.isfinite(a).any(axis=0)
+    lo = np.min(np.where(np.isnan(a), np.inf, a), axis=0) - margin
+    hi = np.max(np.where(np.isnan(a), -np.inf, a), axis=0) + margin
+    return np.column_stack([np.where(seen, lo, -np.pi), np.where(seen, hi, np.pi)])
 
 
 def cluster_joints(
