@@ -236,7 +236,10 @@ class GimbalCalibration:
             " (a larger cluster can be used when its cam1 is on a chain; here cam1 is static)" if allow_subset else ""
         )
         if purpose == "calibration":
-            hint += "; give the file as dcc-fg calibrate --cluster FILE (or use dcc_fg.cluster_calibration.calibrate_cluster)"
+            hint += (
+                "; give the file as dcc-fg calibrate --cluster FILE "
+                "(or use dcc_fg.cluster_calibration.calibrate_cluster)"
+            )
         raise ValueError(
             f"{where}: a {len(layout.cameras)}-camera cluster ({desc}); {purpose} handles a static camera cam0 and one "
             f"gimbal camera cam1 only: N-camera {purpose} is not supported yet{hint}"
