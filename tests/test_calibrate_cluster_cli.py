@@ -228,6 +228,7 @@ def test_bad_inputs(sims: dict[str, Path], tmp_path: Path, capsys: pytest.Captur
     camchain = camchain_of(sim, tmp_path / "camchain.yaml")
     _fails(["calibrate", str(det), "--cluster", str(cluster), "--gimbal", str(two), "--out", out], capsys, "--gimbal")
     _fails(["calibrate", str(det), "--cluster", str(cluster), "--joints", "2", "--out", out], capsys, "--joints")
+    _fails(["calibrate", str(det), "--cluster", str(cluster), "--incremental", "--out", out], capsys, "--incremental")
     _fails(["calibrate", str(det), "--cluster", str(cluster), "--camchain", str(camchain), "--out", out], capsys,
            "--cluster and --camchain")  # fmt: skip
     _fails(["calibrate", str(det), "--mounts", "cam2=gimbal:2", "--out", out], capsys, "--mounts needs --camchain")

@@ -596,4 +596,5 @@ def test_init_file_needs_a_cluster(tmp_path: Path, capsys: pytest.CaptureFixture
     """``--init file`` is the N-camera start from the ``--cluster`` file: without one it is refused by name."""
     argv = ["calibrate", str(tmp_path), "--init", "file", "--joints", "2", "--out", str(tmp_path / "c"), "-q"]
     assert main(argv) == 2
-    assert "--init file starts an N-camera calibration from its --cluster file: give --cluster" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "--init file starts an N-camera calibration from its --cluster file: give --cluster" in err

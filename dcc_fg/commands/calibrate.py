@@ -24,7 +24,7 @@ import yaml
 
 from dcc_fg.calibrate import CalibrationOptions, CalibrationResult, calibrate
 from dcc_fg.calibration_health import calibration_health
-from dcc_fg.commands import common
+from dcc_fg.commands import calibrate_incremental, common
 from dcc_fg.commands.calibrate_cluster import add_cluster_flags, calibrate_cluster_command, wants_cluster
 from dcc_fg.data import CalibrationDataset, common_corners
 from dcc_fg.degeneracy import NOMINALS
@@ -585,6 +585,7 @@ def add_parsers(sub: Any, parent: argparse.ArgumentParser) -> None:
     add_reader_flags(c)
     common.add_config_flag(c, "calibrate")
     common.add_rerun_flags(c, RERUN_SHOWS)
+    calibrate_incremental.add_incremental_flags(c)  # --incremental (dcc_fg/commands/calibrate_incremental.py)
 
     v = common.add_command(
         sub, "validate", parent, "hold a calibration fixed and estimate only the joint angles of new snapshots",
@@ -607,6 +608,8 @@ def add_parsers(sub: Any, parent: argparse.ArgumentParser) -> None:
 def calibrate_command(args: argparse.Namespace) -> int:
     if wants_cluster(args):  # N cameras: --cluster, or --camchain with --mounts
         return calibrate_cluster_command(args)
+    if getattr(args, "incremental", False):  # calibrate as you record
+        return calibrate_incremental.run_incremental_command(args)
     rerun = common.rerun_options(args)
     config = common.effective_config(args, CalibrateConfig, "calibrate")
     inputs = CalibrationInputs(args.data, camchain=args.camchain, target=args.target, gimbal=args.gimbal)

@@ -821,7 +821,8 @@ def check_cluster_args(args: argparse.Namespace) -> None:
     if args.mounts is not None and args.camchain is None:
         raise ValueError("--mounts needs --camchain (the intrinsics of cam0 .. camN-1)")
     given = [f for f, v in (("--gimbal", getattr(args, "gimbal", None)), ("--rerun", getattr(args, "rerun", None)),
-                            ("--rerun-spawn", getattr(args, "rerun_spawn", False))) if v]  # fmt: skip
+                            ("--rerun-spawn", getattr(args, "rerun_spawn", False)),
+                            ("--incremental", getattr(args, "incremental", False))) if v]  # fmt: skip
     given += [FLAG_OF.get(k, k) for k in common.option_flags(args) if k not in CLUSTER_OPTIONS]
     if given:
         raise ValueError(
