@@ -12,6 +12,7 @@ target both cameras share (the snapshot prediction is undefined there).
 
 from __future__ import annotations
 
+import matplotlib
 import numpy as np
 from matplotlib.axes import Axes
 from matplotlib.figure import Figure
@@ -45,11 +46,13 @@ def _heat(
     labels: tuple[str, str],
     vmax: float | None = None,
 ) -> None:
-    """One heat map of z (len(x), len(y)) over degrees x, y."""
-    ax.set_facecolor("0.75")
+    """One heat map of z (len(x), len(y)) over degrees x, y: cells without a prediction (no shared view)
+    grey; outside the operating range (where data snapshots may still be drawn) the axes stay white."""
     masked = np.ma.masked_invalid(z.T)
     top = vmax if vmax is not None and np.isfinite(vmax) else None
-    mesh = ax.pcolormesh(np.degrees(x), np.degrees(y), masked, shading="nearest", cmap="magma_r", vmin=0.0, vmax=top)
+    cmap = matplotlib.colormaps["magma_r"].copy()
+    cmap.set_bad("0.75")
+    mesh = ax.pcolormesh(np.degrees(x), np.degrees(y), masked, shading="nearest", cmap=cmap, vmin=0.0, vmax=top)
     fig.colorbar(mesh, ax=ax, label=f"1-sigma ({unit})")
     ax.set_xlabel(labels[0])
     ax.set_ylabel(labels[1])
