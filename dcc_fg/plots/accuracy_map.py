@@ -50,8 +50,7 @@ def _heat(
     grey; outside the operating range (where data snapshots may still be drawn) the axes stay white."""
     masked = np.ma.masked_invalid(z.T)
     top = vmax if vmax is not None and np.isfinite(vmax) else None
-    cmap = matplotlib.colormaps["magma_r"].copy()
-    cmap.set_bad("0.75")
+    cmap = matplotlib.colormaps["magma_r"].with_extremes(bad="0.75")
     mesh = ax.pcolormesh(np.degrees(x), np.degrees(y), masked, shading="nearest", cmap=cmap, vmin=0.0, vmax=top)
     fig.colorbar(mesh, ax=ax, label=f"1-sigma ({unit})")
     ax.set_xlabel(labels[0])
