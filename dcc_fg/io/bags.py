@@ -305,6 +305,22 @@ class DuplicateFilter:
                 )  # fmt: skip
 
 
+def _raw_messages(path: Path, reader: AnyReader, conns: list[Connection]) -> Iterator[tuple[Connection, int, bytes]]:
+    """(connection, record time ns, serialized bytes) in bag order; a truncated or corrupt bag ->
+    ValueError naming it (other exceptions, e.g. a bug's AssertionError, keep their type)."""
+    it = reader.messages(connections=conns)
+    while True:
+        try:
+            item = next(it)
+        except StopIteration:
+            return
+        except (*BAG_ERRORS, AssertionError) as exc:
+            if not is_bad_bag_error(exc):
+                raise
+            raise ValueError(f"{path}: truncated or corrupt bag ({type(exc).__name__}: {exc})") from None
+        yield item
+
+
 def bag_messages(
     path: Path, reader: AnyReader, conns: list[Connection], duplicates: DuplicateFilter | None = None
 ) -> Iterator[tuple[Connection, int, Any]]:
@@ -314,21 +330,8 @@ def bag_messages(
     None, which logs what it dropped when the bag has been read to the end).  Every pass over a
     bag drops the same messages, so message indices of one pass hold in the next.
     """
-    own = duplicates is None
     dup = DuplicateFilter() if duplicates is None else duplicates
-    it = reader.messages(connections=conns)
-    while True:
-        try:
-            item = next(it)
-        except StopIteration:
-            if own:
-                dup.log(path)
-            return
-        except (*BAG_ERRORS, AssertionError) as exc:
-            if not is_bad_bag_error(exc):
-                raise
-            raise ValueError(f"{path}: truncated or corrupt bag ({type(exc).__name__}: {exc})") from None
-        conn, t, raw = item
+    for conn, t, raw in _raw_messages(path, reader, conns):
         try:
             msg = reader.deserialize(raw, conn.msgtype)
         except BAG_ERRORS as exc:
@@ -336,6 +339,8 @@ def bag_messages(
         if hasattr(msg, "header") and dup.drop(conn.topic, stamp_ns(msg, t), raw, conn.msgtype in IMAGE_TYPES):
             continue
         yield conn, t, msg
+    if duplicates is None:
+        dup.log(path)
 
 
 def bag_image_stamps(
@@ -345,17 +350,7 @@ def bag_image_stamps(
     read from the messages' first bytes (:func:`raw_stamp_ns`; no image is deserialized); repeated
     messages are dropped by ``duplicates`` exactly as :func:`bag_messages` drops them, so a later
     :func:`bag_messages` pass sees the same messages in the same order."""
-    it = reader.messages(connections=conns)
-    while True:
-        try:
-            item = next(it)
-        except StopIteration:
-            return
-        except (*BAG_ERRORS, AssertionError) as exc:
-            if not is_bad_bag_error(exc):
-                raise
-            raise ValueError(f"{path}: truncated or corrupt bag ({type(exc).__name__}: {exc})") from None
-        conn, t, raw = item
+    for conn, t, raw in _raw_messages(path, reader, conns):
         try:
             stamp = raw_stamp_ns(raw, reader.is2, t)
         except ValueError as exc:
