@@ -962,6 +962,25 @@ def T_cs_jacobian(problem: ClusterProblem, cols: Columns, state: ClusterState, c
     return G
 
 
+def T_cs_covariances(
+    problem: ClusterProblem, cols: Columns, state: ClusterState, C: FloatArray
+) -> dict[str, FloatArray]:
+    """Per camera, the (K, 6, 6) covariance of ``T_cs(theta_i)`` at every snapshot (NaN where the
+    camera's chain has no joint angles in that snapshot), propagated from the covariance ``C`` of the
+    parameters laid out by ``cols`` through :func:`T_cs_jacobian`."""
+    out = {}
+    for c in state.model.cameras:
+        covs = np.full((problem.n_snapshots, 6, 6), np.nan)
+        ch = state.model.mounts[c]
+        for i in range(problem.n_snapshots):
+            if ch is not None and not problem.has_theta[ch][i]:
+                continue
+            G = T_cs_jacobian(problem, cols, state, c, i)
+            covs[i] = G @ C @ G.T
+        out[c] = covs
+    return out
+
+
 def calibrate_cluster(
     data: ClusterDataset,
     initial: ClusterKinematics | CameraCluster,
@@ -1023,16 +1042,7 @@ def calibrate_cluster(
                 if ("J", f"{i}:{ch}") in cols.block:
                     b = cols.block[("J", f"{i}:{ch}")]
                     theta_std[ch][i] = np.sqrt(np.maximum(np.diag(C[np.ix_(b, b)]), 0.0))
-        T_cov = {}
-        for c in state.model.cameras:
-            covs = np.full((problem.n_snapshots, 6, 6), np.nan)
-            ch = state.model.mounts[c]
-            for i in range(problem.n_snapshots):
-                if ch is not None and not problem.has_theta[ch][i]:
-                    continue
-                G = T_cs_jacobian(problem, cols, state, c, i)
-                covs[i] = G @ C @ G.T
-            T_cov[c] = covs
+        T_cov = T_cs_covariances(problem, cols, state, C)
     result = ClusterCalibrationResult(
         model=state.model,
         intrinsics=dict(data.cameras),
@@ -1095,14 +1105,4 @@ def T_cs_bound(problem: ClusterProblem, state: ClusterState, rel_tol: float = 1e
     w, V = np.linalg.eigh(H / np.outer(d, d))
     keep = w > rel_tol * w.max()
     C = (V[:, keep] / w[keep]) @ V[:, keep].T / np.outer(d, d)
-    out = {}
-    for c in state.model.cameras:
-        covs = np.full((problem.n_snapshots, 6, 6), np.nan)
-        ch = state.model.mounts[c]
-        for i in range(problem.n_snapshots):
-            if ch is not None and not problem.has_theta[ch][i]:
-                continue
-            G = T_cs_jacobian(problem, cols, state, c, i)
-            covs[i] = G @ C @ G.T
-        out[c] = covs
-    return out
+    return T_cs_covariances(problem, cols, state, C)
