@@ -76,6 +76,21 @@ class ImuSamples:
 
 
 @dataclass(frozen=True)
+class CameraTracks:
+    """Observations of one further camera of an N-camera run in one frame.
+
+    ``camera`` is the camera's run index (>= 2, :class:`dcc_fg.data.cameras.RunCamera`); ``ids`` share
+    the landmark id space of :class:`TrackFrame`; ``xy`` are undistorted normalized coordinates in that
+    camera's frame. The image is taken as exposed with the frame's static image (cameras of a cluster
+    are triggered together; its stamp was paired with the static stamp within the pairing tolerance).
+    """
+
+    camera: int
+    ids: IntArray
+    xy: FloatArray
+
+
+@dataclass(frozen=True)
 class TrackFrame:
     """Feature observations of one synchronized camera frame.
 
@@ -83,7 +98,8 @@ class TrackFrame:
     (x/z, y/z) in the static camera frame s and the dynamic camera frame d.
     ``static_ids`` / ``dynamic_ids`` index one landmark id space: an id seen by both
     cameras is the same world point (this is what makes the joint angles observable).
-    ``dynamic_*`` is empty in ``mono`` mode or when the gimbal camera saw nothing.
+    ``dynamic_*`` is empty in ``mono`` mode or when the gimbal camera saw nothing. ``extra`` holds the
+    tracks of further cameras of an N-camera cluster (run index >= 2), in the same id space.
     ``timestamp_ns`` is the static image's header stamp; ``dynamic_timestamp_ns`` the gimbal image's
     (None: the same stamp, a synchronized pair). Stamps are on the cameras' clocks: the smoother
     relates them to the IMU clock with its time offsets.
@@ -95,6 +111,7 @@ class TrackFrame:
     dynamic_ids: IntArray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     dynamic_xy: FloatArray = field(default_factory=lambda: np.zeros((0, 2)))
     dynamic_timestamp_ns: int | None = None
+    extra: tuple[CameraTracks, ...] = ()
 
     @property
     def dynamic_gap_s(self) -> float:
