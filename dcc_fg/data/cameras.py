@@ -12,8 +12,8 @@ without joints, or in ``scc`` mode any camera on the locked chain at the locked 
 *primary* chain (``kin`` = its chain parameters ``[tau_s, tau_d, dh]`` of :mod:`factors.chain`, sharing
 the primary camera's joint angles). Cameras on a second chain with joints would need a second
 joint-angle state, which the VIO does not have: :func:`run_cameras` leaves them out (listed by
-:func:`ignored_cameras`, for the log and the summary) and refuses them when they are asked for by name. ``mono`` mode uses
-cam0 and the rigid cameras only (a static stereo pair is ``mono`` with two static cameras).
+:func:`ignored_cameras`, for the log and the summary) and refuses them when they are asked for by
+name. ``mono`` mode uses cam0 and the rigid cameras only (a static stereo pair is ``mono`` with two static cameras).
 
 Frames: ``T_cs`` maps points of s into camera c (the paper's T^{c:s}); angles in rad.
 """
