@@ -12,6 +12,7 @@ import numpy as np
 
 from dcc_fg.commands import common
 from dcc_fg.commands.simulate_cluster import CLUSTER_HELP, simulate_cluster_command
+from dcc_fg.sim.cluster_flight import FLIGHT_PRESETS, check_flight_cluster, load_flight_cluster
 from dcc_fg.sim.cluster_scene import PRESETS as CLUSTER_PRESETS
 from dcc_fg.sim.flight_bag import write_flight
 from dcc_fg.sim.mechanism_family import describe, family_member
@@ -55,7 +56,17 @@ FLIGHT_DESCRIPTION = (
     "ground_truth.tum and ground_truth_joints.csv (gimbal joint angles at each gimbal image's true exposure "
     "time, keyed by its header stamp). --rates, --phase, --time-offsets and --stamp-jitter make the cameras "
     "unsynchronized (convention t_imu = t_cam_stamp + t_offset); the truth is then also in calibration.yaml "
-    "flight.timing and ground_truth_frames.csv."
+    "flight.timing and ground_truth_frames.csv. --cluster adds cameras (an N-camera cluster): every camera's "
+    "images on /camN/image_raw, the cluster's layout in calibration.yaml."
+)
+FLIGHT_CLUSTER_HELP = (
+    "fly an N-camera cluster instead of the two cameras: a preset, stereo+gimbal (cam0 + cam1 a static stereo "
+    "pair 11 cm apart, cam2 the flight's gimbal camera) or gimbal-pair (cam1 the flight's gimbal camera, cam2 a "
+    "thermal-like camera 4 cm beside it on the same gimbal), or a cluster calibration YAML file (cameras: / "
+    "chains:, every camera with intrinsics, a 2-joint primary chain, no second chain with joints; intrinsics "
+    "scaled by --scale). The primary chain and its joint motion are the flight's; further cameras are triggered "
+    "with cam0 (its exposure times and stamps, whatever the timing flags); each camera's images on its rostopic "
+    "or /camN/image_raw; calibration.yaml holds the cluster (cameras:/chains:) and flight.cluster"
 )
 
 
@@ -199,6 +210,8 @@ def simulate_flight_command(args: argparse.Namespace) -> int:
     config = FlightConfig.short(args.duration) if args.duration is not None else FlightConfig()
     joints = locked_gimbal() if args.gimbal == "locked" else None
     timing = camera_timing(args)
+    if args.cluster is not None:
+        check_cluster_arg(args.cluster, args.scale)
     res = write_flight(
         args.out,
         args.format,
@@ -209,6 +222,7 @@ def simulate_flight_command(args: argparse.Namespace) -> int:
         progress=not args.quiet,
         force=args.force,
         timing=timing,
+        cluster=args.cluster,
     )
     speed = float(np.linalg.norm(res.truth.v_W, axis=1).max()) if len(res.truth.v_W) else 0.0
     limit = VioOptions().max_speed
@@ -224,12 +238,34 @@ def simulate_flight_command(args: argparse.Namespace) -> int:
         if timing.is_default
         else f"{res.images[0]} static + {res.images[1]} gimbal images, truth per image in {res.frames_truth}"
     )
+    if res.cluster is not None:
+        per_topic = ", ".join(f"{t} {n}" for n, t in zip(res.images, res.topics, strict=True))
+        images = f"{len(res.topics)} cameras, images per topic: {per_topic}" + (
+            "" if timing.is_default else f", truth per image in {res.frames_truth}"
+        )
     print(
         f"wrote {res.bag} ({images}, {res.truth.distance:.1f} m, "
         f"{res.render_ms_per_pair:.1f} ms CPU rendering per pair, {res.seconds:.1f} s), {res.calibration}, "
         f"{res.ground_truth}, {res.joints}"
     )
     return 0
+
+
+def check_cluster_arg(spec: str, scale: float) -> None:
+    """ValueError naming ``--cluster`` unless ``spec`` is a flight cluster preset or a usable cluster file."""
+    if spec not in FLIGHT_PRESETS and not Path(spec).is_file():
+        why = (
+            f"{spec} is a preset of 'simulate calibration --cluster'; a flight moves one chain"
+            if spec in CLUSTER_PRESETS
+            else f"unknown preset {spec!r} and no such file"
+        )
+        raise ValueError(
+            f"--cluster: {why} (flight presets: {', '.join(FLIGHT_PRESETS)}; or a cluster calibration YAML file)"
+        )
+    try:
+        check_flight_cluster(load_flight_cluster(spec, scale))
+    except ValueError as exc:
+        raise ValueError(f"--cluster: {exc}") from None
 
 
 def add_calibration_parser(sub: Any, parent: argparse.ArgumentParser) -> None:
@@ -337,6 +373,7 @@ def add_flight_parser(sub: Any, parent: argparse.ArgumentParser) -> None:
     )
     add_timing_flags(f, "; the true timing is recorded in calibration.yaml flight.timing and per image in "
                      "ground_truth_frames.csv")  # fmt: skip
+    f.add_argument("--cluster", default=None, metavar="PRESET|FILE", help=FLIGHT_CLUSTER_HELP)
 
 
 def add_parser(sub: Any, parent: argparse.ArgumentParser) -> None:

@@ -26,6 +26,7 @@ import numpy as np
 from tqdm import tqdm
 
 from dcc_fg.commands import common
+from dcc_fg.data.cameras import default_topic, run_cameras
 from dcc_fg.data.vio import ImuConfig, load_imu_config
 from dcc_fg.io import validate
 from dcc_fg.io.output_set import OutputSet
@@ -96,7 +97,9 @@ class VioRunOptions:
     ``dynamic_rejection``: the second stage of the gimbal outlier handling; ``frontend_worker``: ``auto`` |
     ``inline`` | ``process``; ``fit_initial_joints``: start the
     dcc joint angles from the first frame's static <-> gimbal matches; ``start_s``: skip the first seconds
-    of the bag (from its first IMU sample).
+    of the bag (from its first IMU sample); ``cameras``: the further cameras of an N-camera calibration to
+    use (names, e.g. ``[cam1]``; None: every camera the mode can use: static cameras and cameras on a chain
+    without joints in every mode, cameras on the primary chain in ``scc`` / ``dcc``).
     """
 
     pixel_sigma: float = 1.0
@@ -105,6 +108,7 @@ class VioRunOptions:
     frontend_worker: str = "auto"
     fit_initial_joints: bool = True
     start_s: float = 0.0
+    cameras: tuple[str, ...] | None = None
 
     def __post_init__(self) -> None:
         if not (np.isfinite(self.pixel_sigma) and self.pixel_sigma > 0):
@@ -119,11 +123,14 @@ class VioRunOptions:
 
 @dataclass
 class TopicOptions:
-    """Bag topics: ``imu`` (sensor_msgs/Imu), ``static`` and ``dynamic`` camera images."""
+    """Bag topics: ``imu`` (sensor_msgs/Imu), ``static`` and ``dynamic`` camera images. ``dynamic`` None:
+    the primary gimbal camera's ``rostopic`` in the calibration, else ``/camN/image_raw`` (``/cam1/image_raw``
+    for a two-camera calibration). Further cameras of a cluster are read from their ``rostopic`` (else
+    ``/camN/image_raw``)."""
 
     imu: str = "/imu0"
     static: str = "/cam0/image_raw"
-    dynamic: str = "/cam1/image_raw"
+    dynamic: str | None = None
 
 
 @dataclass
@@ -328,11 +335,14 @@ def run_vio(
     if not bag.exists():
         raise FileNotFoundError(f"{bag}: bag not found")
     outputs = OutputSet(out, "vio", inputs.by_option(config_file))
-    cal = load_calibration(cal_path).require_two_cameras("VIO", allow_subset=True)
+    cal = load_calibration(cal_path)
     imu = imu_config(inputs)
     options = smoother_options(config, cal, cal_path, imu)
     mono = options.mode == "mono"
-    topics = BagTopics(config.topics.imu, config.topics.static, None if mono else config.topics.dynamic)
+    primary = cal.cluster().camera(cal.cluster().primary_gimbal_camera)
+    dynamic_topic = config.topics.dynamic or primary.rostopic or default_topic(primary.name)
+    topics = BagTopics(config.topics.imu, config.topics.static, None if mono else dynamic_topic)
+    run_cameras(cal, options.mode, options.theta_fixed, config.run.cameras)  # refuse bad names before the work
     pipeline = PipelineOptions(
         reject_dynamic=config.run.dynamic_rejection,
         fit_initial_joints=config.run.fit_initial_joints,
@@ -340,6 +350,7 @@ def run_vio(
         worker=config.run.frontend_worker,
         frontend=frontend_config(config, cal),
         start_s=config.run.start_s,
+        cameras=config.run.cameras,
     )
     with outputs:
         bar = ProgressBar(progress)
@@ -433,7 +444,13 @@ def add_vio_flags(v: argparse.ArgumentParser) -> None:
     opt = common.add_option
     opt(v, "--imu-topic", "topics.imu", help="sensor_msgs/Imu topic (default /imu0)")
     opt(v, "--static-topic", "topics.static", help="static camera image topic (default /cam0/image_raw)")
-    opt(v, "--dynamic-topic", "topics.dynamic", help="gimbal camera image topic (default /cam1/image_raw)")
+    opt(v, "--dynamic-topic", "topics.dynamic", help="gimbal camera image topic (default: the primary gimbal camera's "
+        "rostopic in the calibration, else /camN/image_raw: /cam1/image_raw for a two-camera calibration)")  # fmt: skip
+    opt(v, "--cameras", "run.cameras", type=lambda t: tuple(x.strip() for x in t.split(",") if x.strip()),
+        metavar="NAMES", help="N-camera calibration: the further cameras to use, e.g. 'cam1' (default: every camera "
+        "the mode can use: static cameras in every mode, cameras on the gimbal chain in scc/dcc; cam0 and in "
+        "scc/dcc the first camera on the chain are always used); their images are read from their rostopic in "
+        "the calibration, else /camN/image_raw")  # fmt: skip
     opt(v, "--mode", "smoother.mode", choices=["dcc", "scc", "mono"], help="default dcc")
     opt(v, "--initial-joints", "smoother.theta_initial", type=lambda t: parse_angles(t, "--initial-joints"),
         metavar="RAD", help="dcc: starting guess of the joint angles, e.g. '1.57,0' (rad); by default they are found "

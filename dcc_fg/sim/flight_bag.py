@@ -31,6 +31,20 @@ The truth then also holds
   one row per image in exposure order (camera 0 static, 1 gimbal; header stamp and true exposure
   time in ns; body pose T_WI and joint angles at the exposure).
 
+N-camera clusters (``cluster=`` / ``--cluster``, :mod:`dcc_fg.sim.cluster_flight`): a preset
+(``stereo+gimbal``, ``gimbal-pair``) or a cluster calibration file adds cameras to the rig; its
+primary chain and primary gimbal camera are the flight's, so the joint motion, the IMU, the truth
+and the cam0 and primary gimbal images are those of the flight without the cluster (same seed).
+Every further camera is triggered with cam0: it is rendered at cam0's true exposure times and
+carries cam0's header stamps (whatever the timing flags do to the primary gimbal camera), with
+image noise of its own stream. Topics: each camera's ``rostopic`` or ``/camN/image_raw``
+(:func:`~dcc_fg.data.cameras.default_topic`; frame id ``camN``); the primary gimbal camera is the
+"dynamic" camera of ``ground_truth_joints.csv`` and ``ground_truth_frames.csv`` (which list cam0
+and the primary gimbal camera only: a further camera's truth is that of cam0's image). Then
+``calibration.yaml`` holds the cluster in the ``cameras:`` / ``chains:`` form
+(:meth:`GimbalCalibration.to_dict` of the layout), the ``imu:`` section, and ``flight.cluster``:
+``source`` (preset or file), ``primary`` (the primary gimbal camera) and ``topics`` (camera -> topic).
+
 Times are the simulation's times plus :data:`START_NS` (bags with stamps near zero confuse tools).
 Images are rendered and written one at a time, in time order with the IMU; an image's record time
 (bag order) is its true exposure time, its header stamp the camera's stamp.
@@ -40,7 +54,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
@@ -51,12 +65,14 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 from tqdm import tqdm
 
+from dcc_fg.data.cameras import RunCamera, default_topic
 from dcc_fg.data.vio import ImuConfig, ImuSamples, load_imu_config
 from dcc_fg.io.bag_writer import BagWriter, image_message, joint_names
 from dcc_fg.io.output_set import OutputSet
 from dcc_fg.io.outputs import write_joint_angles_csv, write_text_atomic
 from dcc_fg.io.tum import write_tum
 from dcc_fg.model import GimbalCalibration, load_calibration
+from dcc_fg.sim.cluster_flight import check_flight_cluster, load_flight_cluster, scale_camera
 from dcc_fg.sim.flight_render import WorldRenderer, planes_from_world
 from dcc_fg.sim.timing import CameraTiming
 from dcc_fg.sim.trajectory import (
@@ -69,7 +85,6 @@ from dcc_fg.sim.trajectory import (
     simulate_flight,
     truth_at,
 )
-from factors.camera import CameraModel
 from factors.chain import inv_se3
 
 FloatArray = NDArray[np.float64]
@@ -96,22 +111,11 @@ class FlightBag:
     frames: int  # static camera images (image pairs of a synchronized flight)
     render_ms_per_pair: float  # CPU time of the process per rendered image pair (per two images)
     seconds: float
-    images: tuple[int, int] = (0, 0)  # images written per camera (static, gimbal)
+    images: tuple[int, ...] = (0, 0)  # images written per camera, by run index (static, gimbal, further cameras)
     timing: CameraTiming = CameraTiming()
     frames_truth: Path | None = None  # ground_truth_frames.csv (unsynchronized timing only)
-
-
-def scale_camera(cam: CameraModel, scale: float) -> CameraModel:
-    """The same lens at ``scale`` times the resolution (pixel centres at integer coordinates)."""
-    if scale == 1.0:
-        return cam
-    fx, fy, cx, cy = cam.intrinsics
-    w, h = cam.resolution
-    return dataclasses.replace(
-        cam,
-        intrinsics=(fx * scale, fy * scale, (cx + 0.5) * scale - 0.5, (cy + 0.5) * scale - 0.5),
-        resolution=(int(round(w * scale)), int(round(h * scale))),
-    )
+    topics: tuple[str, ...] = (STATIC_TOPIC, DYNAMIC_TOPIC)  # image topic per run index
+    cluster: GimbalCalibration | None = None  # the true cluster of a --cluster flight (None: two cameras)
 
 
 #: Comment line of ``ground_truth.tum``.
@@ -131,7 +135,8 @@ def scaled_flight_calibration(scale: float) -> GimbalCalibration:
 
 @dataclass(frozen=True)
 class CameraFrame:
-    """One image of a flight: ``camera`` 0 (static) or 1 (gimbal), its true exposure time and header
+    """One image of a flight: ``camera`` its run index (0 static, 1 primary gimbal camera, 2.. further
+    cameras of a cluster, :mod:`dcc_fg.data.cameras`), its true exposure time and header
     stamp (int64 ns from the start of the simulation, without :data:`START_NS`), and the truth at
     the exposure: ``T_WI`` (4, 4) body in the world and ``theta`` (L,) joint angles (rad)."""
 
@@ -142,17 +147,20 @@ class CameraFrame:
     theta: FloatArray
 
 
-def camera_frames(truth: FlightTruth, timing: CameraTiming, seed: int) -> list[CameraFrame]:
+def camera_frames(truth: FlightTruth, timing: CameraTiming, seed: int, extra: Sequence[int] = ()) -> list[CameraFrame]:
     """Both cameras' frames (:meth:`CameraTiming.streams` over the flight, jitter drawn from
-    ``seed``) with the truth at their exposure times, in exposure order (static first on ties)."""
+    ``seed``) with the truth at their exposure times, in exposure order (static first on ties, then
+    by run index). ``extra``: run indices of further cameras triggered with the static camera (its
+    exposure times and header stamps)."""
     streams = timing.streams(int(truth.t_ns[-1]), np.random.default_rng([seed, 15]))
     frames = []
     for s in streams:
         T_WI, theta = truth_at(truth, s.exposure_ns)
-        frames += [
-            CameraFrame(s.camera, int(e), int(st), T, th)
-            for e, st, T, th in zip(s.exposure_ns, s.stamp_ns, T_WI, theta, strict=True)
-        ]
+        for camera in (s.camera, *extra) if s.camera == 0 else (s.camera,):
+            frames += [
+                CameraFrame(camera, int(e), int(st), T, th)
+                for e, st, T, th in zip(s.exposure_ns, s.stamp_ns, T_WI, theta, strict=True)
+            ]
     frames.sort(key=lambda f: (f.exposure_ns, f.camera))
     return frames
 
@@ -164,17 +172,26 @@ def render_frames(
     T_sI: FloatArray,
     noise_sigma: float = 2.0,
     seed: int = 0,
+    extra: Sequence[RunCamera] = (),
 ) -> Iterator[NDArray[np.uint8]]:
     """The image of every frame, in order: the static camera at ``T_sW = T_sI inv(T_WI)``, the gimbal
-    camera at ``T_ds(theta) T_sW``, both with the truth at the frame's exposure time. Image noise
-    comes from one generator seeded ``seed`` in frame order, so synchronized frames get the same
-    images as :func:`~dcc_fg.sim.flight_render.render_flight`."""
-    cams = (calibration.static_camera, calibration.dynamic_camera)
+    camera at ``T_ds(theta) T_sW``, a further camera ``c`` of ``extra`` (run index ``c.index``) at
+    ``c.T_cs_at(theta) T_sW``, each with the truth at the frame's exposure time. Image noise of the
+    static and gimbal cameras comes from one generator seeded ``seed`` in frame order, so
+    synchronized frames get the same images as :func:`~dcc_fg.sim.flight_render.render_flight`
+    (further cameras draw from a generator of their own and leave those images unchanged)."""
+    cams = {0: calibration.static_camera, 1: calibration.dynamic_camera}
     if cams[0] is None or cams[1] is None:
         raise ValueError("the calibration must carry both camera models to render a flight")
+    further = {c.index: c for c in extra}
     rng = np.random.default_rng(seed)
+    rng_extra = np.random.default_rng([seed, 16])
     for f in frames:
         T_sW = T_sI @ inv_se3(f.T_WI)
+        if f.camera in further:
+            cam = further[f.camera]
+            yield renderer.render(cam.model, cam.T_cs_at(f.theta) @ T_sW, noise_sigma, rng_extra)
+            continue
         T_cW = T_sW if f.camera == 0 else calibration.T_ds(f.theta) @ T_sW
         yield renderer.render(cams[f.camera], T_cW, noise_sigma, rng)
 
@@ -186,20 +203,22 @@ def _write_flight_bag(
     frames: list[CameraFrame],
     images: Iterator[NDArray[np.uint8]],
     progress: bool,
-) -> tuple[tuple[int, int], float]:
+    topics: Sequence[str] = (STATIC_TOPIC, DYNAMIC_TOPIC),
+    frame_ids: Sequence[str] = ("cam0", "cam1"),
+) -> tuple[tuple[int, ...], float]:
     """IMU, ground-truth pose and joints at every IMU sample, and the rendered images, in time order.
 
     Header stamps are ``START_NS`` + the sample time (IMU, truth) or + the frame's header stamp
     (images); an image's record time (its place in the bag) is ``START_NS`` + its true exposure time,
-    as if it arrived without latency (on ties: IMU, static, gimbal).
+    as if it arrived without latency (on ties: IMU, static, gimbal, further cameras). ``topics`` and
+    ``frame_ids``: per run index.
 
     Returns:
-        (images written per camera, CPU seconds spent rendering them).
+        (images written per camera (by run index), CPU seconds spent rendering them).
     """
     names = joint_names(truth.theta.shape[1])
     render_s = 0.0
-    counts = [0, 0]
-    topics, frame_ids = (STATIC_TOPIC, DYNAMIC_TOPIC), ("cam0", "cam1")
+    counts = [0] * len(topics)
     k = 0
     with (
         tqdm(total=len(frames), unit="image", desc="rendering", disable=not progress) as bar,
@@ -230,7 +249,7 @@ def _write_flight_bag(
             flush(int(t), inclusive=True)
         if k != len(frames):
             raise RuntimeError(f"{len(frames) - k} images after the last IMU sample")
-    return (counts[0], counts[1]), render_s
+    return tuple(counts), render_s
 
 
 def write_frames_csv(path: Path, frames: list[CameraFrame]) -> None:
@@ -272,10 +291,13 @@ def _calibration_yaml(
     seed: int,
     scale: float,
     timing: CameraTiming | None = None,
-    images: tuple[int, int] = (0, 0),
+    images: tuple[int, ...] = (0, 0),
+    cluster: dict[str, Any] | None = None,
+    topics: Sequence[str] = (STATIC_TOPIC, DYNAMIC_TOPIC),
 ) -> dict[str, Any]:
     """``calibration.yaml``: the true chain and cameras, the ``imu:`` section and a ``flight:`` record
-    (with ``flight.timing`` for a timing other than the synchronized default)."""
+    (with ``flight.timing`` for a timing other than the synchronized default, ``flight.cluster`` =
+    ``cluster`` for a cluster flight). ``topics``: the static and the primary gimbal camera's."""
     locked = bool(np.ptp(truth.theta, axis=0).max() == 0.0)
     d = cal.to_dict()
     d["imu"] = imu.to_dict()
@@ -289,12 +311,14 @@ def _calibration_yaml(
         "joints_locked": [float(x) for x in truth.theta[0]] if locked else None,
         "topics": {
             "imu": IMU_TOPIC,
-            "static": STATIC_TOPIC,
-            "dynamic": DYNAMIC_TOPIC,
+            "static": topics[0],
+            "dynamic": topics[1],
             "pose": POSE_TOPIC,
             "joints": JOINT_TOPIC,
         },
     }
+    if cluster is not None:
+        d["flight"]["cluster"] = cluster
     if timing is not None and not timing.is_default:
         d["flight"]["timing"] = {
             **timing.to_dict(),
@@ -330,6 +354,7 @@ def write_flight(
     progress: bool = False,
     force: bool = False,
     timing: CameraTiming | None = None,
+    cluster: str | Path | None = None,
 ) -> FlightBag:
     """Simulate, render and write a flight (see the module docstring).
 
@@ -351,6 +376,10 @@ def write_flight(
         timing: the cameras' rates, phase, time offsets and stamp jitter
             (:class:`~dcc_fg.sim.timing.CameraTiming`; default: both at 20 Hz, synchronized). The
             jitter is drawn from ``seed``.
+        cluster: an N-camera cluster instead of the two cameras: a preset of
+            :data:`~dcc_fg.sim.cluster_flight.FLIGHT_PRESETS` or a cluster calibration file
+            (:func:`~dcc_fg.sim.cluster_flight.load_flight_cluster`; its camera models scaled by
+            ``scale``). Further cameras follow cam0's timing (module docstring).
     """
     if fmt not in ("ros1", "ros2"):
         raise ValueError(f"format must be ros1 or ros2, got {fmt!r}")
@@ -366,22 +395,27 @@ def write_flight(
         replace_unowned=False,
     )
     config = config or FlightConfig()
+    joints = joints or JointMotion()
+    cal = scaled_flight_calibration(scale) if cluster is None else load_flight_cluster(cluster, scale)
+    extra = () if cluster is None else check_flight_cluster(cal, joints.n_joints)
+    topics, frame_ids, record = (STATIC_TOPIC, DYNAMIC_TOPIC), ("cam0", "cam1"), None
+    if cluster is not None:
+        topics, frame_ids, record = _cluster_topics(cal, extra, cluster)
     T_sI = default_static_mount()
     imu = dataclasses.replace(imu or ImuConfig(), T_sI=T_sI)
     truth = simulate_flight(config, imu, joints, seed=seed)
     imu = sensor_covering(imu, truth.imu)
-    cal = scaled_flight_calibration(scale)
     renderer = WorldRenderer(planes_from_world(World.around(config)), seed=seed)
     timing = timing or CameraTiming()
-    frames = camera_frames(truth, timing, seed)
-    images = render_frames(renderer, frames, cal, T_sI, noise_sigma=noise_sigma, seed=seed + 1)
+    frames = camera_frames(truth, timing, seed, [c.index for c in extra])
+    images = render_frames(renderer, frames, cal, T_sI, noise_sigma=noise_sigma, seed=seed + 1, extra=extra)
     names = ("flight.bag" if fmt == "ros1" else "flight", "calibration.yaml", "ground_truth.tum",
              "ground_truth_joints.csv")  # fmt: skip
     gimbal = [f for f in frames if f.camera == 1]
     with outputs:
         stage = outputs.path
-        counts, render_s = _write_flight_bag(stage / names[0], fmt, truth, frames, images, progress)
-        d = _calibration_yaml(cal, imu, truth, config, seed, scale, timing, counts)
+        counts, render_s = _write_flight_bag(stage / names[0], fmt, truth, frames, images, progress, topics, frame_ids)
+        d = _calibration_yaml(cal, imu, truth, config, seed, scale, timing, counts, record, topics)
         write_text_atomic(stage / names[1], yaml.safe_dump(d, sort_keys=False))
         write_tum(stage / names[2], truth.t_ns + START_NS, truth.T_WI, TUM_COMMENT, quaternion_decimals=12,
                   w_nonnegative=True)  # fmt: skip
@@ -391,7 +425,7 @@ def write_flight(
             np.array([f.theta for f in gimbal]).reshape(len(gimbal), truth.theta.shape[1]),
         )
         if not timing.is_default:
-            write_frames_csv(stage / FRAMES_NAME, frames)
+            write_frames_csv(stage / FRAMES_NAME, [f for f in frames if f.camera < 2])
     bag_path, cal_path, gt_path, joints_path = (out / n for n in names)
     return FlightBag(
         bag=bag_path,
@@ -405,15 +439,60 @@ def write_flight(
         images=counts,
         timing=timing,
         frames_truth=None if timing.is_default else out / FRAMES_NAME,
+        topics=tuple(topics),
+        cluster=None if cluster is None else cal,
     )
 
 
+def _cluster_topics(
+    cal: GimbalCalibration, extra: Sequence[RunCamera], spec: str | Path
+) -> tuple[list[str], list[str], dict[str, Any]]:
+    """Image topics and frame ids per run index (cam0, the primary gimbal camera, ``extra``) of a
+    cluster flight, and its ``flight.cluster`` record. ValueError when two cameras share a topic (or
+    use the IMU or truth topic)."""
+    cluster = cal.cluster()
+    primary = cluster.primary_gimbal_camera
+    names = ["cam0", primary, *(c.name for c in extra)]
+    topics = [cluster.camera(n).rostopic or default_topic(n) for n in names]
+    assert [c.index for c in extra] == list(range(2, 2 + len(extra)))
+    taken = (IMU_TOPIC, POSE_TOPIC, JOINT_TOPIC)
+    if len(set(topics)) != len(topics) or set(topics) & set(taken):
+        listed = ", ".join(f"{n}: {t}" for n, t in zip(names, topics, strict=True))
+        raise ValueError(
+            f"{spec}: every camera needs an image topic of its own, not {', '.join(taken)} either ({listed})"
+        )
+    by_name = dict(zip(names, topics, strict=True))
+    record = {
+        "source": str(spec),
+        "primary": primary,
+        "topics": {n: by_name[n] for n in cluster.camera_names},
+    }
+    return topics, names, record
+
+
 def load_flight_calibration(path: str | Path) -> tuple[GimbalCalibration, ImuConfig]:
-    """The calibration and IMU configuration of a ``calibration.yaml`` with an ``imu:`` section."""
+    """The calibration and IMU configuration of a ``calibration.yaml`` with an ``imu:`` section.
+
+    A cluster flight's file (``flight.cluster``, written by ``simulate flight --cluster``) gives its
+    whole cluster (:meth:`GimbalCalibration.cluster`; cam1 may be static); any other file must be
+    usable as a static camera cam0 and a gimbal camera cam1
+    (:meth:`GimbalCalibration.require_two_cameras` with ``allow_subset``).
+    """
     imu = load_imu_config(path)
     if imu is None:
         raise ValueError(f"{path}: no 'imu:' section (T_sI and IMU noise are needed for VIO)")
-    return load_calibration(path).require_two_cameras("flight simulation", allow_subset=True), imu
+    cal = load_calibration(path)
+    if _is_cluster_flight(path):
+        return cal, imu
+    return cal.require_two_cameras("flight simulation", allow_subset=True), imu
+
+
+def _is_cluster_flight(path: str | Path) -> bool:
+    """The ``calibration.yaml`` has a ``flight.cluster`` record (a flight of ``simulate flight --cluster``)."""
+    with Path(path).open() as f:
+        d = yaml.safe_load(f)
+    flight = d.get("flight") if isinstance(d, dict) else None
+    return isinstance(flight, dict) and isinstance(flight.get("cluster"), dict)
 
 
 def load_flight_timing(path: str | Path) -> CameraTiming:

@@ -35,17 +35,22 @@ API
   those in front, within range and inside the image, adds pixel noise and returns undistorted
   normalized coordinates. A landmark keeps one id while it stays visible in either camera (a
   new id when it reappears after leaving both views), so ids are shared between the cameras.
+* :func:`simulate_camera_tracks` -- the same with further cameras of an N-camera cluster
+  (:class:`~dcc_fg.data.cameras.RunCamera`, observations in ``TrackFrame.extra``); with none it is
+  :func:`simulate_tracks` bit for bit.
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from dcc_fg.data.vio import ImuConfig, ImuSamples, TrackFrame
+from dcc_fg.data.cameras import RunCamera
+from dcc_fg.data.vio import CameraTracks, ImuConfig, ImuSamples, TrackFrame
 from dcc_fg.model import GimbalCalibration
 from dcc_fg.sim.calibration_scene import true_kinematics
 from factors import chain
@@ -485,10 +490,40 @@ def simulate_tracks(
     normalized coordinates with the camera's focal lengths (distortion is not re-applied, as a
     front end that undistorts would report). ``dynamic=False`` omits the gimbal camera.
     """
+    return simulate_camera_tracks(
+        truth, landmarks_W, calibration, T_sI, (), pixel_sigma, seed, max_range, margin_px, dynamic, theta
+    )
+
+
+def simulate_camera_tracks(
+    truth: FlightTruth,
+    landmarks_W: FloatArray,
+    calibration: GimbalCalibration,
+    T_sI: FloatArray,
+    extra: Sequence[RunCamera],
+    pixel_sigma: float = 0.5,
+    seed: int = 1,
+    max_range: float = 40.0,
+    margin_px: float = 5.0,
+    dynamic: bool = True,
+    theta: FloatArray | None = None,
+) -> list[TrackFrame]:
+    """:func:`simulate_tracks` with the further cameras ``extra`` of an N-camera run (run index >= 2).
+
+    Camera c sees ``p_c = T_cs T_sI T_IW p_W`` with ``T_cs = c.T_cs_at(theta)`` (the primary chain's
+    joint angles at the frame for a camera on the gimbal, constant for a rigid one); its observations
+    go into ``TrackFrame.extra`` (one :class:`~dcc_fg.data.vio.CameraTracks` per camera, in the order
+    of ``extra``). A landmark keeps its id while any camera sees it in consecutive frames. The static
+    and gimbal cameras draw their noise as :func:`simulate_tracks` does (generator ``seed``), the
+    further cameras from a generator of their own (``[seed, 17]``): the static and gimbal
+    coordinates are :func:`simulate_tracks`' bit for bit (only the ids differ where a further camera
+    sees other landmarks), and with ``extra = ()`` the whole output is.
+    """
     cam_s, cam_d = calibration.static_camera, calibration.dynamic_camera
     if cam_s is None or (dynamic and cam_d is None):
         raise ValueError("calibration must carry the static (and dynamic) camera intrinsics")
     rng = np.random.default_rng(seed)
+    rng_extra = np.random.default_rng([seed, 17]) if extra else rng
     idx = truth.index_of(truth.frame_t_ns)
     thetas = truth.theta[idx] if theta is None else np.asarray(theta, float).reshape(idx.size, -1)
     P_h = np.hstack([landmarks_W, np.ones((landmarks_W.shape[0], 1))])
@@ -504,13 +539,29 @@ def simulate_tracks(
             T_dW = calibration.T_ds(thetas[f]) @ T_sW
             p_d = P_h @ T_dW[:3].T
             vis_d, _ = visible_points(cam_d, p_d, max_range, margin_px)
-        track_id = tracks.update(vis_s | vis_d)
+        seen = vis_s | vis_d
+        p_extra, vis_extra = [], []
+        for cam in extra:
+            p_c = P_h @ (cam.T_cs_at(thetas[f]) @ T_sW)[:3].T
+            vis_c, _ = visible_points(cam.model, p_c, max_range, margin_px)
+            p_extra.append(p_c)
+            vis_extra.append(vis_c)
+            seen |= vis_c
+        track_id = tracks.update(seen)
         s_ids, s_xy = track_id[vis_s].copy(), noisy_normalized(p_s, vis_s, cam_s, pixel_sigma, rng)
         if dynamic:
             d_ids, d_xy = track_id[vis_d].copy(), noisy_normalized(p_d, vis_d, cam_d, pixel_sigma, rng)
         else:
             d_ids, d_xy = np.zeros(0, dtype=np.int64), np.zeros((0, 2))
-        frames.append(TrackFrame(int(truth.frame_t_ns[f]), s_ids, s_xy, d_ids, d_xy))
+        more = tuple(
+            CameraTracks(
+                cam.index,
+                track_id[vis_c].copy(),
+                noisy_normalized(p_c, vis_c, cam.model, pixel_sigma, rng_extra),
+            )
+            for cam, p_c, vis_c in zip(extra, p_extra, vis_extra, strict=True)
+        )
+        frames.append(TrackFrame(int(truth.frame_t_ns[f]), s_ids, s_xy, d_ids, d_xy, extra=more))
     return frames
 
 

@@ -79,16 +79,19 @@ def load_euroc(root: str | Path) -> EurocDataset:
     )
 
 
-def euroc_calibration(ds: EurocDataset) -> GimbalCalibration:
-    """cam0 static, cam1 on a one-joint mechanism locked at the published extrinsics (theta = 0)."""
+def euroc_calibration(ds: EurocDataset, rigid: bool = False) -> GimbalCalibration:
+    """cam0 static, cam1 on a one-joint mechanism locked at the published extrinsics (theta = 0); with
+    ``rigid`` cam1 sits on a chain without joints (L = 0) at those extrinsics: a static stereo pair, which
+    ``dcc-fg vio --mode mono`` uses as two static cameras."""
+    links = np.zeros((0 if rigid else 1, 3))
     return GimbalCalibration.from_parts(
-        np.zeros(6), tau_from_se3(ds.T_c1c0), np.zeros((1, 3)), static_camera=ds.cam0, dynamic_camera=ds.cam1
+        np.zeros(6), tau_from_se3(ds.T_c1c0), links, static_camera=ds.cam0, dynamic_camera=ds.cam1
     )
 
 
-def write_euroc_calibration(ds: EurocDataset, path: str | Path) -> Path:
+def write_euroc_calibration(ds: EurocDataset, path: str | Path, rigid: bool = False) -> Path:
     """``calibration.yaml`` of :func:`euroc_calibration` with an ``imu:`` section (T_sI = T_c0_I)."""
-    d = euroc_calibration(ds).to_dict()
+    d = euroc_calibration(ds, rigid).to_dict()
     d["imu"] = ds.imu_config.to_dict()
     write_text_atomic(Path(path), yaml.safe_dump(d, sort_keys=False))
     return Path(path)

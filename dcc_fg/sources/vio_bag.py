@@ -35,13 +35,20 @@ Pairing (unsynchronized cameras): each static image is paired with the gimbal im
 frame period, so every static frame of a free-running gimbal camera finds its nearest partner). The
 smoother accounts for the gap between the two stamps (:mod:`dcc_fg.vio.backend.exposure`).
 
+Further cameras (``extra_topics``, an N-camera cluster): the cameras of a cluster are triggered
+together, so each further image is paired with the static image by ``stamp + t_s`` (the static
+camera's time offset) on both sides, one to one, within ``tolerance_ns`` (None: half the slower of
+the two cameras' median frame periods); a static frame without a partner carries None for that
+camera. A missing, empty or never-pairing further topic is a ``ValueError`` naming the bag and the
+topic, raised by the constructor before any image is decoded; only the paired images are decoded.
+
 Units: ns, m/s^2 (``linear_acceleration``), rad/s (``angular_velocity``).
 """
 
 from __future__ import annotations
 
 import logging
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -72,7 +79,9 @@ class VioFrame:
     ``dynamic_between`` are the gimbal images without a static partner taken since the previous frame's
     gimbal image (a gimbal camera faster than the static one), oldest first, with their stamps
     ``dynamic_between_ns``: the front end tracks through them so that its gimbal tracks step from
-    image to image.
+    image to image. ``extra`` are the further cameras' images (aligned with ``VioBag.extra_topics``;
+    None where a camera has no image paired with this frame), ``extra_timestamps_ns`` their stamps
+    (0 where None).
     """
 
     timestamp_ns: int
@@ -82,6 +91,8 @@ class VioFrame:
     after_gap: bool = False
     dynamic_between: tuple[NDArray[np.uint8], ...] = ()
     dynamic_between_ns: tuple[int, ...] = ()
+    extra: tuple[NDArray[np.uint8] | None, ...] = ()
+    extra_timestamps_ns: tuple[int, ...] = ()
 
 
 @dataclass
@@ -217,6 +228,8 @@ class VioBag:
         max_bad_imu_fraction: more bad IMU samples than this fraction is an error.
         acc_range, gyro_range: the IMU's range per axis (m/s^2, rad/s; ``ImuConfig.acc_range`` and
             ``gyro_range``); samples beyond are dropped. None: no range check (only non-finite values).
+        extra_topics: image topics of further cameras (run index 2, 3, ...), paired with the static
+            images (module docstring); their pairing numbers are in :attr:`extra_pairing_statistics`.
     """
 
     def __init__(
@@ -232,10 +245,18 @@ class VioBag:
         max_bad_imu_fraction: float = 0.01,
         acc_range: float | None = None,
         gyro_range: float | None = None,
+        extra_topics: Sequence[str] = (),
     ) -> None:
         self.path = Path(path)
         self.imu_topic, self.static_topic, self.dynamic_topic = imu_topic, static_topic, dynamic_topic
-        image_topics = [static_topic] + ([dynamic_topic] if dynamic_topic else [])
+        self.extra_topics = tuple(extra_topics)
+        image_topics = [static_topic] + ([dynamic_topic] if dynamic_topic else []) + list(self.extra_topics)
+        repeated = sorted({t for t in image_topics if image_topics.count(t) > 1})
+        if repeated:
+            raise ValueError(
+                f"{self.path}: image topic {', '.join(repeated)} is given for more than one camera "
+                f"(static {static_topic}, gimbal {dynamic_topic}, further cameras {', '.join(self.extra_topics)})"
+            )
         scan = scan_imu_and_image_stamps(self.path, imu_topic, image_topics)
         where = f"{self.path}: topic {imu_topic}"
         self.imu, self.imu_check = validate_imu(
@@ -279,6 +300,12 @@ class VioBag:
         self.tolerance_ns = tolerance_ns
         self.pairing_statistics: dict[str, float | int | None] | None = None
         self._pairs = self._pair_images(tolerance_ns)
+        #: per further topic: pairing numbers (:meth:`~dcc_fg.io.pairing.Pairing.statistics`, the
+        #: gimbal fields naming the further camera) and its partner index per static image (-1: none)
+        self.extra_pairing_statistics: dict[str, dict[str, float | int | None]] = {}
+        self._extra_partner: list[dict[int, int]] = [
+            self._pair_extra(topic, tolerance_ns) for topic in self.extra_topics
+        ]
         self._between = self._gimbal_images_between()
         s = self._stamps[static_topic]
         self.frame_times = np.array(sorted(s[i] for i, _ in self._pairs), dtype=np.int64)
@@ -325,6 +352,31 @@ class VioBag:
         self.pairing_statistics = pairing.statistics()
         paired = {i for i, _ in pairing.pairs}
         return sorted(pairing.pairs + [(i, -1) for i in range(len(s)) if i not in paired], key=lambda p: s[p[0]])
+
+    def _pair_extra(self, topic: str, tolerance_ns: int | None) -> dict[int, int]:
+        """Static image index -> index of its partner on the further camera ``topic`` (module docstring)."""
+        s = self._stamps[self.static_topic]
+        e = self._stamps[topic]
+        if not e:
+            raise ValueError(f"{self.path}: topic {topic} (a further camera) has no messages")
+        if tolerance_ns is None:
+            periods = [p for p in (median_period_ms(s), median_period_ms(e)) if p is not None]
+            tolerance_ns = int(0.5 * max(periods) * 1e6) if periods else 0
+        t_s = self.time_offsets_ns[0]
+        pairing = pair_timestamps(np.asarray(s) + t_s, np.asarray(e) + t_s, tolerance_ns)
+        if not pairing.pairs:
+            raise ValueError(
+                f"{self.path}: no image of {self.static_topic} has a partner on {topic} (a further camera) within "
+                f"{tolerance_ns / 1e6:g} ms; check the topic's stamps and the pairing tolerance"
+            )
+        if pairing.unpaired_static or pairing.unpaired_dynamic:
+            log.warning(
+                "%s: %s; static frames without a partner are used without that camera",
+                self.path,
+                pairing.summary(self.static_topic, topic),
+            )
+        self.extra_pairing_statistics[topic] = pairing.statistics()
+        return dict(pairing.pairs)
 
     def _gimbal_images_between(self) -> dict[int, list[int]]:
         """Per frame (position in the pairs), the unpaired gimbal images (indices) since the previous
@@ -398,20 +450,29 @@ class VioBag:
     def _pending_frames(self) -> Iterator[VioFrame]:
         """Frames in static-stamp order, even where the bag's record order differs."""
         s_topic, d_topic = self.static_topic, self.dynamic_topic
-        topics = [s_topic] + ([d_topic] if d_topic else [])
+        topics = [s_topic] + ([d_topic] if d_topic else []) + list(self.extra_topics)
         first_s = self._first[s_topic]
         n_frames = len(self._pairs)
+        first_e = [self._first[topic] for topic in self.extra_topics]
+        n_e = len(self.extra_topics)
+
+        def partners(i: int) -> tuple[int, ...]:  # message index per further topic of static image i
+            return tuple(f[p[i]] if i in p else -1 for f, p in zip(first_e, self._extra_partner, strict=True))
+
         # groups 0..n_frames-1: the frames; then one group per gimbal image between frames
         extra_of: dict[int, tuple[int, int]] = {}  # group -> (frame, position among its images between)
         if d_topic:
             first_d = self._first[d_topic]
-            groups: list[tuple[int, ...]] = [(first_s[i], first_d[j] if j >= 0 else -1) for i, j in self._pairs]
+            groups: list[tuple[int, ...]] = [
+                (first_s[i], first_d[j] if j >= 0 else -1, *partners(i)) for i, j in self._pairs
+            ]
             for n, js in sorted(self._between.items()):
                 for pos, j in enumerate(js):
                     extra_of[len(groups)] = (n, pos)
-                    groups.append((-1, first_d[j]))
+                    groups.append((-1, first_d[j], *([-1] * n_e)))
         else:
-            groups = [(first_s[i],) for i, _ in self._pairs]
+            groups = [(first_s[i], *partners(i)) for i, _ in self._pairs]
+        off = 2 if d_topic else 1  # position of the first further topic in ``topics``
         order = sorted(range(n_frames), key=lambda n: self._stamps[s_topic][self._pairs[n][0]])
         rank = {n: r for r, n in enumerate(order)}
         between: dict[int, dict[int, tuple[NDArray[np.uint8], int]]] = {}
@@ -437,7 +498,16 @@ class VioBag:
                 assert s_img is not None
                 d = images[1] if d_topic else None
                 d_img, d_ts = (d.image, d.stamp_ns) if d is not None else (None, 0)
-                frame = VioFrame(s_img.stamp_ns, s_img.image, d_img, d_ts, s_img.stamp_ns in self._gap_starts)
+                ex = images[off : off + n_e]
+                frame = VioFrame(
+                    s_img.stamp_ns,
+                    s_img.image,
+                    d_img,
+                    d_ts,
+                    s_img.stamp_ns in self._gap_starts,
+                    extra=tuple(None if x is None else x.image for x in ex),
+                    extra_timestamps_ns=tuple(0 if x is None else x.stamp_ns for x in ex),
+                )
                 if not complete(n):
                     waiting[n] = frame
                     continue

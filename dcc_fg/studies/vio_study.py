@@ -5,6 +5,11 @@ freely (joint angles estimated), ``scc`` with the gimbal locked at its mid posit
 held) and ``mono`` with the static camera only. Every run starts from the true state at the first
 frame (initialization from motion), with the joint angles perturbed by ``theta_init_error`` rad in
 dcc mode. Metrics come from :mod:`dcc_fg.vio.evaluate` (SE(3) alignment; Sim(3) for mono).
+
+N-camera clusters (``preset``: :func:`dcc_fg.sim.cluster_flight.flight_cluster`, e.g. a static stereo
+pair + the gimbal camera, or two cameras on the gimbal) fly the same flight with the same primary gimbal;
+``cameras`` picks the further cameras a run uses (``()``: cam0 and the gimbal camera only, the
+one-static-camera run of the same cluster).
 """
 
 from __future__ import annotations
@@ -14,7 +19,9 @@ from typing import Any
 
 import numpy as np
 
+from dcc_fg.data.cameras import run_cameras
 from dcc_fg.data.vio import ImuConfig
+from dcc_fg.sim.cluster_flight import flight_cluster, simulate_cluster_tracks
 from dcc_fg.sim.trajectory import (
     FlightConfig,
     FlightTruth,
@@ -52,17 +59,33 @@ def _study_inputs(cfg: StudyConfig) -> tuple[FlightTruth, np.ndarray, ImuConfig]
     return truth, pts, imu_cfg
 
 
-def run_mode(mode: str, cfg: StudyConfig | None = None, options: dict[str, Any] | None = None) -> dict[str, Any]:
-    """Simulate, run one mode and evaluate; returns metrics plus the result under ``'result'``."""
+def run_mode(
+    mode: str,
+    cfg: StudyConfig | None = None,
+    options: dict[str, Any] | None = None,
+    preset: str | None = None,
+    cameras: tuple[str, ...] | None = None,
+) -> dict[str, Any]:
+    """Simulate, run one mode and evaluate; returns metrics plus the result under ``'result'``.
+
+    ``preset``: fly an N-camera cluster (module docstring) with the further cameras ``cameras`` (names;
+    None: every camera the mode can use); None: today's static + gimbal camera pair."""
     cfg = cfg or StudyConfig()
     truth, pts, imu_cfg = _study_inputs(cfg)
-    cal = flight_calibration()
+    cal = flight_calibration() if preset is None else flight_cluster(preset)
     focal = float(cal.static_camera.intrinsics[0]) if cal.static_camera is not None else 460.0
     mid = np.asarray(truth.joints.mid, float)
     theta = np.tile(mid, (truth.frame_t_ns.size, 1)) if mode == "scc" else None
-    frames = simulate_tracks(
-        truth, pts, cal, imu_cfg.T_sI, cfg.pixel_sigma, seed=cfg.seed + 1, theta=theta, dynamic=(mode != "mono")
-    )
+    extra = () if preset is None else run_cameras(cal, mode, mid if mode == "scc" else None, cameras)
+    if preset is None:
+        frames = simulate_tracks(
+            truth, pts, cal, imu_cfg.T_sI, cfg.pixel_sigma, seed=cfg.seed + 1, theta=theta, dynamic=(mode != "mono")
+        )
+    else:
+        frames = simulate_cluster_tracks(
+            truth, pts, cal, imu_cfg.T_sI, extra, cfg.pixel_sigma, seed=cfg.seed + 1, theta=theta,
+            dynamic=(mode != "mono"),
+        )  # fmt: skip
     theta0 = truth.theta[0] + cfg.theta_init_error if mode == "dcc" else np.zeros(0)
     init = InitialState(int(truth.t_ns[0]), truth.T_WI[0], truth.v_W[0], truth.acc_bias[0], truth.gyro_bias[0], theta0)
     opts = VioOptions(
@@ -71,7 +94,7 @@ def run_mode(mode: str, cfg: StudyConfig | None = None, options: dict[str, Any] 
         theta_fixed=tuple(float(x) for x in mid) if mode == "scc" else None,
         **(options or {}),
     )
-    res: VioResult = run_vio(frames, truth.imu, imu_cfg, cal, opts, init)
+    res: VioResult = run_vio(frames, truth.imu, imu_cfg, cal, opts, init, cameras=extra)
     joint_truth = truth.theta if mode == "dcc" else np.tile(mid, (truth.t_ns.size, 1))
     gt = GroundTruth(truth.t_ns, truth.T_WI, truth.t_ns, joint_truth)
     ev = evaluate_trajectory(res.timestamps_ns, res.T_WI, gt, "sim3" if mode == "mono" else "se3")

@@ -30,6 +30,16 @@ Per synchronized frame pair (:meth:`Frontend.process`):
    The younger of the two tracks takes the older one's id (for the back end this just ends the
    younger track: ids are never re-assigned to different points); shared pairs that fail the
    test are split.
+4. **Further cameras** of an N-camera cluster (run index >= 2, :class:`~dcc_fg.data.cameras.RunCamera`):
+   each has its own tracker drawing ids from the same counter.  A camera rigid to the body gets the
+   static camera's temporal RANSAC (its motion is a rigid motion too); a camera on the gimbal is not
+   rejected over time, like the gimbal camera.  Each is matched against cam0 with the machinery of
+   step 3 (:meth:`Frontend._match_pair`), so landmarks seen by a static stereo pair share ids from
+   the first frame.  For a rigid camera with a known ``T_cs`` the check is stricter than the
+   rotation RANSAC: every pair must lie on the epipolar segment of ``E = [t]x R`` from ``T_cs``
+   (depths >= ``match_min_depth``) within ``match_rigid_threshold`` pixels.  When the id of a cam0
+   track changes in a merge, the tracks of the other cameras that share it follow, so the links
+   between cam0, the gimbal camera and the further cameras survive.
 
 Output: a :class:`~dcc_fg.data.vio.TrackFrame` of undistorted normalized coordinates
 (:meth:`CameraModel.undistort_points`).  Pixels follow OpenCV's convention.  Times in ns.
@@ -39,18 +49,20 @@ from __future__ import annotations
 
 import itertools
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from dcc_fg.data.vio import TrackFrame
+from dcc_fg.data.cameras import RunCamera
+from dcc_fg.data.vio import CameraTracks, TrackFrame
 from dcc_fg.detection import to_gray8
 from dcc_fg.vio.epipolar import (
     depth_segment_distance,
     essential,
+    homogeneous,
     rotation_prediction,
     rotation_ransac,
     sampson_distance,
@@ -89,6 +101,12 @@ class FrontendConfig:
         match_rotation_threshold: angle (rad) of the pure-rotation check used without a T_ds estimate
             (it must exceed the parallax of the nearest points: baseline / depth).
         min_pairs: fewer static<->gimbal pairs than this are checked against the T_ds estimate alone.
+        match_rigid_threshold: pixels (the further camera's mean focal length): largest distance of a
+            cam0 <-> rigid further camera pair from the epipolar segment under the known ``T_cs``
+            (a full epipolar test; KLT and corner noise are a few tenths of a pixel, the rest is
+            left for calibration error).
+        match_klt: rigid further cameras: also follow cam0's unshared tracks into the camera with KLT
+            (:meth:`Frontend._seed_from_static`; sub-pixel pairs, and as many as the views share).
         dynamic_threshold: gimbal-camera epipolar (Sampson) threshold of the second stage.
         dynamic_rotation_threshold: gimbal-camera threshold when the motion is a pure rotation.
     """
@@ -112,6 +130,8 @@ class FrontendConfig:
     match_min_depth: float = 0.3
     match_rotation_threshold: float = 0.05
     min_pairs: int = 6
+    match_rigid_threshold: float = 1.5
+    match_klt: bool = True
     dynamic_threshold: float = 2.0
     dynamic_rotation_threshold: float = 4.0
 
@@ -226,12 +246,27 @@ class FrontendStats:
     pairs_split: int = 0
     frames_without_gimbal: int = 0
     gimbal_images_between: int = 0
+    #: all further cameras together per frame (tracking, rejection, detection, matching with cam0), ms
+    extra_ms: list[float] = field(default_factory=list)
+    #: per further camera (by name): ms per frame with its image, matches merged, pairs split, frames without image
+    camera_ms: dict[str, list[float]] = field(default_factory=dict)
+    camera_matches: dict[str, int] = field(default_factory=dict)
+    camera_pairs_split: dict[str, int] = field(default_factory=dict)
+    camera_frames_without_image: dict[str, int] = field(default_factory=dict)
+    camera_seeded: dict[str, int] = field(default_factory=dict)
 
     def summary(self) -> dict[str, float]:
+        """Medians of the timings and the counters; with further cameras also ``extra_ms_median`` and,
+        per camera ``NAME``, ``NAME_ms_median``, ``NAME_matches``, ``NAME_pairs_split`` and
+        ``NAME_frames_without_image``. ``total_*`` includes the further cameras."""
+
         def med(x: list[float]) -> float:
             return float(np.median(x)) if x else 0.0
 
-        total = [a + b + c for a, b, c in zip(self.static_ms, self.dynamic_ms, self.match_ms, strict=True)]
+        extra = self.extra_ms if len(self.extra_ms) == len(self.static_ms) else [0.0] * len(self.static_ms)
+        total = [
+            a + b + c + e for a, b, c, e in zip(self.static_ms, self.dynamic_ms, self.match_ms, extra, strict=True)
+        ]
         return {
             "frames": float(self.frames),
             "static_ms_median": med(self.static_ms),
@@ -245,7 +280,20 @@ class FrontendStats:
             "matches": float(self.matches),
             "frames_without_gimbal": float(self.frames_without_gimbal),
             "gimbal_images_between": float(self.gimbal_images_between),
+            **self._camera_summary(),
         }
+
+    def _camera_summary(self) -> dict[str, float]:
+        if not self.camera_ms:
+            return {}
+        out = {"extra_ms_median": float(np.median(self.extra_ms)) if self.extra_ms else 0.0}
+        for name, ms in self.camera_ms.items():
+            out[f"{name}_ms_median"] = float(np.median(ms)) if ms else 0.0
+            out[f"{name}_matches"] = float(self.camera_matches.get(name, 0))
+            out[f"{name}_pairs_split"] = float(self.camera_pairs_split.get(name, 0))
+            out[f"{name}_frames_without_image"] = float(self.camera_frames_without_image.get(name, 0))
+            out[f"{name}_seeded"] = float(self.camera_seeded.get(name, 0))
+        return out
 
 
 class CameraTracker:
@@ -360,8 +408,13 @@ class CameraTracker:
             return
         new = corners.reshape(-1, 2).astype(np.float32)
         n = new.shape[0]
+        self.add(new, np.fromiter(itertools.islice(self._ids, n), np.int64, n))
+
+    def add(self, new: NDArray[np.float32], ids: IntArray) -> None:
+        """Start tracks at pixels ``new`` (N, 2) with the given ids (new ids, or another camera's)."""
+        n = new.shape[0]
         self.pts = np.vstack([self.pts, new])
-        self.ids = np.concatenate([self.ids, np.fromiter(itertools.islice(self._ids, n), np.int64, n)])
+        self.ids = np.concatenate([self.ids, np.asarray(ids, dtype=np.int64)])
         self.ages = np.concatenate([self.ages, np.zeros(n, dtype=np.int64)])
         self.xy = np.vstack([self.xy, self.camera.undistort_points(new.astype(np.float64))])
         self.prev_xy = np.vstack([self.prev_xy, np.full((n, 2), np.nan)])
@@ -373,13 +426,15 @@ class CameraTracker:
 
 
 class Frontend:
-    """Feature tracks of a static camera and an optional gimbal camera (see the module docstring).
+    """Feature tracks of a static camera, an optional gimbal camera and further cameras (module docstring).
 
     Args:
-        static_camera: model of the static camera s.
+        static_camera: model of the static camera s (cam0).
         dynamic_camera: model of the gimbal camera d, or None (static camera only, ``mono``).
         config: parameters (default: :meth:`FrontendConfig.for_resolution` of the static camera).
         T_ds: initial estimate of static -> gimbal camera (4x4) for the matching check, or None.
+        extra: further cameras of the run (run index >= 2), in the order of the images given to
+            :meth:`process`; rigid ones start with their ``T_cs``, gimbal ones without an estimate.
     """
 
     def __init__(
@@ -388,25 +443,40 @@ class Frontend:
         dynamic_camera: CameraModel | None = None,
         config: FrontendConfig | None = None,
         T_ds: FloatArray | None = None,
+        extra: Sequence[RunCamera] = (),
     ) -> None:
         self.config = config or FrontendConfig.for_resolution(*static_camera.resolution)
         self._ids = itertools.count()
         self.static = CameraTracker(static_camera, self.config, self._ids)
         self.dynamic = CameraTracker(dynamic_camera, self.config, self._ids) if dynamic_camera else None
         self.T_ds = None if T_ds is None else np.asarray(T_ds, dtype=float)
+        self.extra_cameras = tuple(extra)
+        indices = [c.index for c in self.extra_cameras]
+        if len(set(indices)) != len(indices):
+            raise ValueError(f"further cameras with repeated run indices: {indices}")
+        self.extra = [CameraTracker(c.model, self.config, self._ids) for c in self.extra_cameras]
+        #: current estimates s -> further camera (4x4), None while unknown (a gimbal camera before any estimate)
+        self.extra_T_cs: list[FloatArray | None] = [
+            None if c.on_gimbal else np.asarray(c.T_cs_at(None), dtype=float) for c in self.extra_cameras
+        ]
         self.stats = FrontendStats()
+        for c in self.extra_cameras:
+            self.stats.camera_ms[c.name] = []
         self._describer = OrbDescriber()
         self._static_motion: tuple[FloatArray, FloatArray] | None = None
         self._static_pair: tuple[FloatArray, FloatArray, FloatArray] | None = None
+
+    def _trackers(self) -> list[CameraTracker]:
+        """Every tracker: static, gimbal (if any), further cameras."""
+        return [self.static, *([self.dynamic] if self.dynamic is not None else []), *self.extra]
 
     # ------------------------------------------------------------------ per frame
     def reset(self) -> None:
         """Forget every track (e.g. after a gap in the images: KLT cannot bridge seconds); the
         next frame starts new tracks with new ids."""
-        for tracker in (self.static, self.dynamic):
-            if tracker is not None:
-                tracker.gray = None
-                tracker.keep(np.zeros(len(tracker), dtype=bool))
+        for tracker in self._trackers():
+            tracker.gray = None
+            tracker.keep(np.zeros(len(tracker), dtype=bool))
         self._static_motion = None
         self._static_pair = None
 
@@ -417,8 +487,10 @@ class Frontend:
         dynamic_image: NDArray[np.generic] | None = None,
         T_ds: FloatArray | None = None,
         gimbal_hint: GimbalHint | None = None,
+        extra_images: Sequence[NDArray[np.generic] | None] = (),
+        extra_T_cs: Sequence[FloatArray | None] | None = None,
     ) -> TrackFrame:
-        """Track one synchronized frame pair and return its observations.
+        """Track one synchronized frame and return its observations.
 
         Args:
             timestamp_ns: frame time, ns.
@@ -429,9 +501,22 @@ class Frontend:
                 keeps the previous estimate when None.
             gimbal_hint: if given, reject gimbal tracks right away (see :meth:`reject_dynamic`);
                 by default nothing is rejected in the gimbal camera at this stage.
+            extra_images: one image (or None: no image near this frame; its tracks wait for the next
+                one) per further camera, in the order of ``extra`` at construction; empty: none this frame.
+            extra_T_cs: current estimates s -> further camera (4x4; None entries keep the previous
+                estimate), e.g. ``cam.T_cs_at(theta)`` at the predicted joint angles; None keeps all.
         """
         if T_ds is not None:
             self.T_ds = np.asarray(T_ds, dtype=float)
+        images = list(extra_images) if len(extra_images) else [None] * len(self.extra)
+        if len(images) != len(self.extra):
+            raise ValueError(f"{len(images)} images for {len(self.extra)} further cameras")
+        if extra_T_cs is not None:
+            if len(extra_T_cs) != len(self.extra):
+                raise ValueError(f"{len(extra_T_cs)} T_cs estimates for {len(self.extra)} further cameras")
+            for k, T in enumerate(extra_T_cs):
+                if T is not None:
+                    self.extra_T_cs[k] = np.asarray(T, dtype=float)
         c0 = time.process_time()
         t0 = time.perf_counter()
         self.stats.fb_rejected += self.static.track(to_gray8(static_image))
@@ -451,14 +536,40 @@ class Frontend:
         if gimbal:
             self._match()
         t3 = time.perf_counter()
+        seen = [self._process_extra(k, image) for k, image in enumerate(images)]
+        t4 = time.perf_counter()
         self.stats.frames += 1
         self.stats.static_ms.append(1e3 * (t1 - t0))
         self.stats.dynamic_ms.append(1e3 * (t2 - t1))
         self.stats.match_ms.append(1e3 * (t3 - t2))
+        self.stats.extra_ms.append(1e3 * (t4 - t3))
         self.stats.cpu_ms.append(1e3 * (time.process_time() - c0))
         if self.dynamic is not None and not gimbal:
             self.stats.frames_without_gimbal += 1
-        return self.frame(timestamp_ns, gimbal)
+        return self.frame(timestamp_ns, gimbal, seen)
+
+    def _process_extra(self, k: int, image: NDArray[np.generic] | None) -> bool:
+        """Track further camera ``k`` into its image, reject (rigid cameras only), refill and match it
+        with cam0; False when it has no image this frame."""
+        cam, tracker = self.extra_cameras[k], self.extra[k]
+        stats = self.stats
+        if image is None:
+            stats.camera_frames_without_image[cam.name] = stats.camera_frames_without_image.get(cam.name, 0) + 1
+            return False
+        t0 = time.perf_counter()
+        stats.fb_rejected += tracker.track(to_gray8(image))
+        if not cam.on_gimbal:
+            self._reject_rigid(tracker)
+        T_cs = self.extra_T_cs[k]
+        if self.config.match_klt and not cam.on_gimbal and T_cs is not None:
+            stats.camera_seeded[cam.name] = stats.camera_seeded.get(cam.name, 0) + self._seed_from_static(tracker, T_cs)
+        tracker.enforce_spacing()
+        tracker.detect()
+        merged, split = self._match_pair(tracker, T_cs, exact=not cam.on_gimbal)
+        stats.camera_matches[cam.name] = stats.camera_matches.get(cam.name, 0) + merged
+        stats.camera_pairs_split[cam.name] = stats.camera_pairs_split.get(cam.name, 0) + split
+        stats.camera_ms[cam.name].append(1e3 * (time.perf_counter() - t0))
+        return True
 
     def track_gimbal(self, dynamic_image: NDArray[np.generic]) -> None:
         """Step the gimbal tracks through a gimbal image without a static partner (a gimbal camera
@@ -469,31 +580,86 @@ class Frontend:
         self.stats.fb_rejected += self.dynamic.track(to_gray8(dynamic_image), step=True)
         self.stats.gimbal_images_between += 1
 
-    def frame(self, timestamp_ns: int, with_gimbal: bool = True) -> TrackFrame:
+    def frame(
+        self, timestamp_ns: int, with_gimbal: bool = True, with_extra: Sequence[bool] | None = None
+    ) -> TrackFrame:
         """The current observations as a TrackFrame (without the gimbal camera's when ``with_gimbal``
-        is False: a frame without a gimbal image)."""
+        is False: a frame without a gimbal image; with the further cameras flagged in ``with_extra``,
+        default all)."""
         s = self.static
+        flags = [True] * len(self.extra) if with_extra is None else list(with_extra)
+        extra = tuple(
+            CameraTracks(cam.index, t.ids.copy(), t.xy.copy())
+            for cam, t, on in zip(self.extra_cameras, self.extra, flags, strict=True)
+            if on
+        )
         if self.dynamic is None or not with_gimbal:
-            return TrackFrame(int(timestamp_ns), s.ids.copy(), s.xy.copy())
+            return TrackFrame(int(timestamp_ns), s.ids.copy(), s.xy.copy(), extra=extra)
         d = self.dynamic
-        return TrackFrame(int(timestamp_ns), s.ids.copy(), s.xy.copy(), d.ids.copy(), d.xy.copy())
+        return TrackFrame(int(timestamp_ns), s.ids.copy(), s.xy.copy(), d.ids.copy(), d.xy.copy(), extra=extra)
 
-    # ------------------------------------------------------------------ static camera
+    def _seed_from_static(self, other: CameraTracker, T_cs: FloatArray) -> int:
+        """Follow cam0's tracks that ``other`` (a rigid camera with known ``T_cs``) does not share into
+        its image: pyramidal KLT from cam0's image, started at the image of each cam0 ray at infinite
+        depth (the baseline's parallax is left to the pyramid), forward-backward checked, and kept
+        when within ``match_rigid_threshold`` pixels of the epipolar segment (depths >=
+        ``match_min_depth``).  The new tracks take cam0's ids; returns how many."""
+        s, cfg = self.static, self.config
+        assert s.gray is not None and other.gray is not None
+        cand = np.flatnonzero(~np.isin(s.ids, other.ids))
+        if cand.size == 0:
+            return 0
+        rays = homogeneous(s.xy[cand]) @ T_cs[:3, :3].T
+        front = rays[:, 2] > 1e-6
+        cand, rays = cand[front], rays[front]
+        if cand.size == 0:
+            return 0
+        guess, _ = other.camera.project(rays, jacobian=False)
+        p0 = s.pts[cand].reshape(-1, 1, 2).astype(np.float32)
+        p1 = guess.reshape(-1, 1, 2).astype(np.float32)
+        lk = dict(other._lk, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
+        p1, st1, _ = cv2.calcOpticalFlowPyrLK(s.gray, other.gray, p0, p1, **lk)
+        back = p0.copy()
+        p0r, st2, _ = cv2.calcOpticalFlowPyrLK(other.gray, s.gray, p1, back, **lk)
+        p1 = p1.reshape(-1, 2)
+        fb = np.linalg.norm((p0r - p0).reshape(-1, 2), axis=1)
+        b = cfg.border
+        w, h = other.camera.resolution
+        inside = (p1[:, 0] >= b) & (p1[:, 0] <= w - 1 - b) & (p1[:, 1] >= b) & (p1[:, 1] <= h - 1 - b)
+        ok = (st1.ravel() == 1) & (st2.ravel() == 1) & (fb < cfg.fb_threshold) & inside
+        if not np.any(ok):
+            return 0
+        xy = other.camera.undistort_points(p1[ok].astype(np.float64))
+        f = float(np.mean(other.camera.intrinsics[:2]))
+        err = depth_segment_distance(T_cs, s.xy[cand[ok]], xy, cfg.match_min_depth) * f
+        good = err < cfg.match_rigid_threshold
+        n = int(good.sum())
+        if n:
+            other.add(p1[ok][good].astype(np.float32), s.ids[cand[ok][good]])
+            other.xy[-n:] = xy[good]
+        return n
+
+    # ------------------------------------------------------------------ static (rigid) cameras
     def _reject_static(self) -> None:
+        """Temporal RANSAC of the static camera (:meth:`_reject_rigid`), keeping its two-view
+        geometry for :meth:`static_motion`."""
+        self._static_motion = None
+        self._static_pair = None
+        self._reject_rigid(self.static, store=True)
+
+    def _reject_rigid(self, tracker: CameraTracker, store: bool = False) -> None:
         """Essential-matrix RANSAC between consecutive frames, and between this frame and
         ``ransac_window`` frames ago for the tracks that old (a longer baseline constrains the
         translation far better, so a small independently moving cluster that fooled the
-        two-frame test is caught after at most ``ransac_window`` frames)."""
-        s = self.static
-        self._static_motion = None
-        self._static_pair = None
-        keep = np.ones(len(s), dtype=bool)
+        two-frame test is caught after at most ``ransac_window`` frames). Valid for any camera rigid
+        to the body; ``store``: keep the consecutive-frame inliers as the static camera's pair."""
+        keep = np.ones(len(tracker), dtype=bool)
         for lag in sorted({1, max(self.config.ransac_window, 1)}):
-            x0 = s.prev_xy if lag == 1 else s.hist[:, lag - 1]
-            inl = self._ransac(x0, s.xy, s.camera, store=lag == 1)
+            x0 = tracker.prev_xy if lag == 1 else tracker.hist[:, lag - 1]
+            inl = self._ransac(x0, tracker.xy, tracker.camera, store=store and lag == 1)
             if inl is not None:
                 keep &= inl
-        s.keep(keep)
+        tracker.keep(keep)
 
     def _ransac(self, x0: FloatArray, x1: FloatArray, camera: CameraModel, store: bool) -> BoolArray | None:
         """Inlier mask over all tracks (tracks without an ``x0`` are inliers); None if not run."""
@@ -572,53 +738,108 @@ class Frontend:
         self.stats.dynamic_rejected += int(gone.sum())
         return int(gone.sum())
 
-    # ------------------------------------------------------------------ static <-> gimbal
+    # ------------------------------------------------------------------ cam0 <-> other cameras
     def _match(self) -> None:
-        """Match unshared tracks across the cameras and verify every shared pair geometrically.
+        """Match unshared static and gimbal tracks and verify every shared pair (:meth:`_match_pair`
+        with the T_ds estimate)."""
+        assert self.dynamic is not None
+        merged, split = self._match_pair(self.dynamic, self.T_ds, exact=False)
+        self.stats.matches += merged
+        self.stats.pairs_split += split
 
-        New descriptor matches and the pairs already sharing an id go through one rotation
-        RANSAC (translation from the T_ds estimate when there is one, so only the rotation,
-        which the joint angles change most, comes from the data).  Inlier matches merge ids;
-        shared pairs that became outliers (a KLT track slid onto another corner) are split by
-        giving the gimbal track a fresh id.  With fewer than ``min_pairs`` pairs the T_ds
-        estimate alone decides (nothing new is merged without one).
+    def _match_pair(self, other: CameraTracker, T_cs: FloatArray | None, exact: bool) -> tuple[int, int]:
+        """Match unshared tracks of cam0 and camera ``other`` and verify every shared pair geometrically.
+
+        New descriptor matches and the pairs already sharing an id are checked together
+        (:meth:`_pair_inliers`: rotation RANSAC with the translation of the ``T_cs`` estimate, or with
+        ``exact`` and a ``T_cs`` the full epipolar test of each pair).  Inlier matches merge ids (the
+        younger track takes the older one's id, :meth:`_rename`); shared pairs that became outliers
+        (a KLT track slid onto another corner) are split by giving ``other``'s track a fresh id.
+        Returns (matches merged, pairs split).
         """
-        s, d = self.static, self.dynamic
-        assert d is not None and s.gray is not None and d.gray is not None
+        s = self.static
+        assert s.gray is not None and other.gray is not None
         cfg = self.config
-        _, sh_s, sh_d = np.intersect1d(s.ids, d.ids, return_indices=True)
-        cand_s = np.flatnonzero(~np.isin(s.ids, d.ids))
-        cand_d = np.flatnonzero(~np.isin(d.ids, s.ids))
-        new_s = new_d = np.zeros(0, dtype=np.int64)
-        if cand_s.size and cand_d.size and self.stats.frames % max(cfg.match_every, 1) == 0:
+        _, sh_s, sh_c = np.intersect1d(s.ids, other.ids, return_indices=True)
+        cand_s = np.flatnonzero(~np.isin(s.ids, other.ids))
+        cand_c = np.flatnonzero(~np.isin(other.ids, s.ids))
+        new_s = new_c = np.zeros(0, dtype=np.int64)
+        if cand_s.size and cand_c.size and self.stats.frames % max(cfg.match_every, 1) == 0:
             ks, desc_s = self._describer.describe(s.gray, s.pts[cand_s].astype(np.float64))
-            kd, desc_d = self._describer.describe(d.gray, d.pts[cand_d].astype(np.float64))
-            ma, mb, _ = mutual_ratio_matches(desc_s, desc_d, cfg.match_ratio, cfg.match_max_hamming)
-            new_s, new_d = cand_s[ks[ma]], cand_d[kd[mb]]
+            kc, desc_c = self._describer.describe(other.gray, other.pts[cand_c].astype(np.float64))
+            ma, mb, _ = mutual_ratio_matches(desc_s, desc_c, cfg.match_ratio, cfg.match_max_hamming)
+            new_s, new_c = cand_s[ks[ma]], cand_c[kc[mb]]
         i_s = np.concatenate([sh_s.astype(np.int64), new_s])
-        i_d = np.concatenate([sh_d.astype(np.int64), new_d])
+        i_c = np.concatenate([sh_c.astype(np.int64), new_c])
         if i_s.size == 0:
-            return
-        t_ds = None if self.T_ds is None else self.T_ds[:3, 3]
-        if i_s.size >= cfg.min_pairs:
-            thr = cfg.match_epipolar_threshold if t_ds is not None else cfg.match_rotation_threshold
-            R, ok = rotation_ransac(s.xy[i_s], d.xy[i_d], thr, t_ds, cfg.match_min_depth, seed=self.stats.frames)
+            return 0, 0
+        n_sh = sh_s.size
+        ok = self._pair_inliers(s.xy[i_s], other.xy[i_c], other.camera, T_cs, exact, n_sh)
+        bad = i_c[:n_sh][~ok[:n_sh]]
+        if bad.size:
+            other.ids[bad] = np.fromiter(itertools.islice(self._ids, bad.size), np.int64, bad.size)
+            other.ages[bad] = 0
+        m_s, m_c = i_s[n_sh:][ok[n_sh:]], i_c[n_sh:][ok[n_sh:]]
+        younger_c = other.ages[m_c] <= s.ages[m_s]
+        self._rename(other, m_c[younger_c], s.ids[m_s[younger_c]])
+        self._rename(s, m_s[~younger_c], other.ids[m_c[~younger_c]])
+        return int(m_s.size), int(bad.size)
+
+    def _pair_inliers(
+        self,
+        xy_s: FloatArray,
+        xy_c: FloatArray,
+        camera: CameraModel,
+        T_cs: FloatArray | None,
+        exact: bool,
+        n_shared: int,
+    ) -> BoolArray:
+        """Which cam0 <-> camera c correspondences (normalized, cam0 first; the first ``n_shared``
+        already share an id) are geometrically consistent.
+
+        ``exact`` with a ``T_cs`` (a rigid camera whose extrinsics are known): each pair on its own,
+        distance from the epipolar segment of the cam0 ray (depths >= ``match_min_depth``) below
+        ``match_rigid_threshold`` pixels of ``camera``.  Otherwise (extrinsics that change with the
+        joint angles): one rotation RANSAC with the translation of ``T_cs`` (pure rotation without
+        one); with fewer than ``min_pairs`` pairs the ``T_cs`` estimate alone decides, and without
+        one only the shared pairs are kept.
+        """
+        cfg = self.config
+        if exact and T_cs is not None:
+            f = float(np.mean(camera.intrinsics[:2]))
+            return depth_segment_distance(T_cs, xy_s, xy_c, cfg.match_min_depth) * f < cfg.match_rigid_threshold
+        t_cs = None if T_cs is None else T_cs[:3, 3]
+        if xy_s.shape[0] >= cfg.min_pairs:
+            thr = cfg.match_epipolar_threshold if t_cs is not None else cfg.match_rotation_threshold
+            R, ok = rotation_ransac(xy_s, xy_c, thr, t_cs, cfg.match_min_depth, seed=self.stats.frames)
             if R is None:
-                ok = np.zeros(i_s.size, dtype=bool)
-        elif self.T_ds is not None:
-            err = depth_segment_distance(self.T_ds, s.xy[i_s], d.xy[i_d], cfg.match_min_depth)
+                ok = np.zeros(xy_s.shape[0], dtype=bool)
+        elif T_cs is not None:
+            err = depth_segment_distance(T_cs, xy_s, xy_c, cfg.match_min_depth)
             ok = err < cfg.match_epipolar_threshold
         else:
-            ok = np.zeros(i_s.size, dtype=bool)
-            ok[: sh_s.size] = True  # too few pairs to judge: keep the existing ones
-        n_sh = sh_s.size
-        bad = i_d[:n_sh][~ok[:n_sh]]
-        if bad.size:
-            d.ids[bad] = np.fromiter(itertools.islice(self._ids, bad.size), np.int64, bad.size)
-            d.ages[bad] = 0
-            self.stats.pairs_split += int(bad.size)
-        m_s, m_d = i_s[n_sh:][ok[n_sh:]], i_d[n_sh:][ok[n_sh:]]
-        younger_d = d.ages[m_d] <= s.ages[m_s]
-        d.ids[m_d[younger_d]] = s.ids[m_s[younger_d]]
-        s.ids[m_s[~younger_d]] = d.ids[m_d[~younger_d]]
-        self.stats.matches += int(m_s.size)
+            ok = np.zeros(xy_s.shape[0], dtype=bool)
+            ok[:n_shared] = True  # too few pairs to judge: keep the existing ones
+        return ok
+
+    def _rename(self, tracker: CameraTracker, idx: IntArray, new_ids: IntArray) -> None:
+        """Give tracks ``idx`` of ``tracker`` the ids ``new_ids``; tracks of the other cameras that
+        shared an old id follow (unless that camera holds the new id already), so a merge with cam0
+        keeps the links of cam0's track to the gimbal and further cameras."""
+        if idx.size == 0:
+            return
+        old = tracker.ids[idx].copy()
+        tracker.ids[idx] = new_ids
+        for other in self._trackers():
+            if other is tracker or len(other) == 0:
+                continue
+            hit = np.flatnonzero(np.isin(other.ids, old))
+            if hit.size == 0:
+                continue
+            mapping = dict(zip(old.tolist(), np.asarray(new_ids).tolist(), strict=True))
+            present = set(other.ids.tolist())
+            for i in hit:
+                new = mapping[int(other.ids[i])]
+                if new not in present:
+                    other.ids[i] = new
+                    present.add(new)

@@ -36,6 +36,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from dcc_fg.data.cameras import RunCamera, ignored_cameras, run_cameras
 from dcc_fg.data.vio import ImuConfig, ImuSamples, TrackFrame
 from dcc_fg.model import GimbalCalibration
 from dcc_fg.sources.vio_bag import VioBag
@@ -71,7 +72,9 @@ class PipelineOptions:
     the smoother, on a second core (:mod:`dcc_fg.vio.worker`); ``auto`` (default) picks ``process``
     when this process may use at least two cores (see :func:`~dcc_fg.vio.worker.resolve_mode`;
     ``benchmarks/bench_vio.py`` measures both on a given machine). ``start_s``: skip the first seconds of
-    the bag (from its first IMU sample), e.g. to start in motion."""
+    the bag (from its first IMU sample), e.g. to start in motion. ``cameras``: the further cameras of an
+    N-camera cluster to use (names; None: every camera the mode can use, :func:`~dcc_fg.data.cameras.run_cameras`).
+    """
 
     reject_dynamic: bool = True
     fit_initial_joints: bool = True
@@ -79,6 +82,7 @@ class PipelineOptions:
     tolerance_ns: int | None = None
     frontend: FrontendConfig | None = None
     start_s: float = 0.0
+    cameras: tuple[str, ...] | None = None
 
     def __post_init__(self) -> None:
         if not (np.isfinite(self.start_s) and self.start_s >= 0):
@@ -86,7 +90,8 @@ class PipelineOptions:
 
 
 def check_bag_inputs(calibration: GimbalCalibration, options: VioOptions, topics: BagTopics) -> None:
-    """ValueError unless the calibration has the camera models and the topics the mode needs."""
+    """ValueError unless the calibration has the camera models and the topics the mode needs (the further
+    cameras' models are checked by :func:`~dcc_fg.data.cameras.run_cameras`)."""
     if calibration.static_camera is None:
         raise ValueError("the calibration has no static camera model (cam0 intrinsics are needed for VIO)")
     if options.mode == "mono":
@@ -169,8 +174,10 @@ class SmootherDriver:
         initial: InitialState | None,
         guess: FloatArray | None,
         worker: FrontendWorker,
+        cameras: tuple[RunCamera, ...] = (),
     ) -> None:
         self.imu, self.imu_config, self.cal = imu, imu_config, calibration
+        self.cameras = cameras
         self.options, self.pipeline, self.initial, self.worker = options, pipeline, initial, worker
         self.guess = guess
         self.theta0 = self.guess if self.guess is not None else np.zeros(calibration.n_joints)
@@ -255,7 +262,7 @@ class SmootherDriver:
             self.start = {"how": "given", "detail": "initial state given"}
         elif state is not None:
             start = InitialState(t, state.T_WI, state.v_W, state.acc_bias, state.gyro_bias, np.zeros(0))
-        self.smoother = VioSmoother(self.imu, self.imu_config, None if mono else self.cal, self.options)
+        self.smoother = VioSmoother(self.imu, self.imu_config, None if mono else self.cal, self.options, self.cameras)
         self.smoother.initialize(frame, start, start_sigmas(self.selector, self.options))
         self.smoother.stats["start"] = self.start
         self.t_start_data = t
@@ -318,9 +325,10 @@ def frontend_spec(
     pipeline: PipelineOptions,
     theta0: FloatArray,
     t_range: tuple[int, int],
+    cameras: tuple[RunCamera, ...] = (),
 ) -> WorkerSpec:
     """What the front-end worker needs: bag, topics (no gimbal topic in ``mono``), calibration,
-    starting joint angles (rad) and the time range (ns) of frames to track."""
+    starting joint angles (rad), the time range (ns) of frames to track and the further cameras."""
     mono = options.mode == "mono"
     return WorkerSpec(
         str(bag),
@@ -334,6 +342,7 @@ def frontend_spec(
         tuple(float(x) for x in theta0),
         t_range,
         snapshots=options.mode == "dcc" and pipeline.reject_dynamic,
+        extra=cameras,
     )
 
 
@@ -345,7 +354,21 @@ def run_statistics(
     mono = driver.options.mode == "mono"
     return {
         "bag": str(bag),
-        "topics": {"imu": topics.imu, "static": topics.static, "dynamic": None if mono else topics.dynamic},
+        "topics": {
+            "imu": topics.imu,
+            "static": topics.static,
+            "dynamic": None if mono else topics.dynamic,
+            **{c.name: c.topic for c in driver.cameras},
+        },
+        "cameras": {
+            "used": [
+                "cam0",
+                *([] if mono else [cal.cluster().primary_gimbal_camera]),
+                *(c.name for c in driver.cameras),
+            ],
+            "further": {c.name: "gimbal" if c.on_gimbal else "rigid" for c in driver.cameras},
+            "left_out": ignored_cameras(cal, driver.options.mode, driver.cameras),
+        },
         "frames_in_bag": len(vb),
         "pairing": {
             "tolerance_ms": None if vb.tolerance_ns is None else vb.tolerance_ns / 1e6,
@@ -409,6 +432,10 @@ def run_vio_bag(
     topics = topics or BagTopics()
     pipeline = pipeline or PipelineOptions()
     check_bag_inputs(calibration, options, topics)
+    cameras = run_cameras(calibration, options.mode, options.theta_fixed, pipeline.cameras)
+    left_out = ignored_cameras(calibration, options.mode, cameras)
+    if left_out:
+        log.warning("%s mode leaves out camera(s) %s of the cluster", options.mode, ", ".join(left_out))
     mono = options.mode == "mono"
     t_wall = time.perf_counter()
     vb = VioBag(
@@ -416,6 +443,7 @@ def run_vio_bag(
         topics.imu,
         topics.static,
         None if mono else topics.dynamic,
+        extra_topics=tuple(c.topic for c in cameras),
         tolerance_ns=pipeline.tolerance_ns,
         time_offsets_ns=time_offsets_ns(options),
         acc_range=imu_config.acc_range,
@@ -432,9 +460,9 @@ def run_vio_bag(
         )
     guess = joint_angle_guess(options, initial)
     theta0 = guess if guess is not None else np.zeros(calibration.n_joints)
-    spec = frontend_spec(bag, calibration, options, topics, pipeline, theta0, (t_min, t_last))
+    spec = frontend_spec(bag, calibration, options, topics, pipeline, theta0, (t_min, t_last), cameras)
     worker = FrontendWorker(spec, resolve_mode(pipeline.worker))
-    driver = SmootherDriver(vb.imu, imu_config, calibration, options, pipeline, initial, guess, worker)
+    driver = SmootherDriver(vb.imu, imu_config, calibration, options, pipeline, initial, guess, worker, cameras)
     n_total = len(vb)
     try:
         driver.observer = observer

@@ -36,6 +36,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from dcc_fg.data.cameras import RunCamera
 from dcc_fg.data.vio import TrackFrame
 from dcc_fg.model import GimbalCalibration
 from dcc_fg.sources.vio_bag import VioBag
@@ -97,7 +98,9 @@ class Tracked:
 
 @dataclass(frozen=True)
 class WorkerSpec:
-    """Everything the front end needs, picklable for a child process."""
+    """Everything the front end needs, picklable for a child process. ``extra``: the further cameras
+    of an N-camera run (run index >= 2); their topics are read from the bag, paired with the static
+    images, and tracked."""
 
     bag: str
     imu_topic: str
@@ -110,6 +113,7 @@ class WorkerSpec:
     theta0: tuple[float, ...]
     t_range: tuple[int, int]
     snapshots: bool
+    extra: tuple[RunCamera, ...] = ()
 
 
 class _Tracker:
@@ -128,6 +132,7 @@ class _Tracker:
             None if mono else cal.dynamic_camera,
             spec.config,
             T_ds=None if mono else cal.T_ds(theta0),
+            extra=spec.extra,
         )
         self.thetas = ThetaTrack(theta0, spec.t_range[0])
         self.skipped = self.resets = self.processed = 0
@@ -154,10 +159,13 @@ class _Tracker:
             if vf.after_gap and started:
                 fe.reset()
                 self.resets += 1
-            T_ds = None if mono else spec.calibration.T_ds(self.thetas.at(t))
+            theta = self.thetas.at(t)
+            T_ds = None if mono else spec.calibration.T_ds(theta)
             for image in vf.dynamic_between:
                 fe.track_gimbal(image)
-            frame = fe.process(t, vf.static, vf.dynamic, T_ds=T_ds)
+            # the further cameras follow the same extrapolated joint angles (rigid ones ignore them)
+            extra_T_cs = [c.T_cs_at(theta) for c in spec.extra] if spec.extra else None
+            frame = fe.process(t, vf.static, vf.dynamic, T_ds=T_ds, extra_images=vf.extra, extra_T_cs=extra_T_cs)
             if vf.dynamic is not None:
                 frame = dataclasses.replace(frame, dynamic_timestamp_ns=int(vf.dynamic_timestamp_ns))
             started = True
@@ -173,6 +181,7 @@ def _open_bag(spec: WorkerSpec) -> VioBag:
         spec.dynamic_topic,
         tolerance_ns=spec.tolerance_ns,
         time_offsets_ns=spec.time_offsets_ns,
+        extra_topics=tuple(c.topic for c in spec.extra),
     )
 
 

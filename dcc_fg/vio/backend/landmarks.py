@@ -34,7 +34,9 @@ def validate_frames(frames: list[TrackFrame], source: str = "tracks") -> None:
         if last is not None and f.timestamp_ns <= last:
             raise ValueError(f"{source}: frame {i} timestamp {f.timestamp_ns} is not after {last}")
         last = f.timestamp_ns
-        for cam, ids, xy in (("static", f.static_ids, f.static_xy), ("dynamic", f.dynamic_ids, f.dynamic_xy)):
+        views = [("static", f.static_ids, f.static_xy), ("dynamic", f.dynamic_ids, f.dynamic_xy)]
+        views += [(f"camera {c.camera}", c.ids, c.xy) for c in f.extra]
+        for cam, ids, xy in views:
             if xy.shape != (ids.shape[0], 2):
                 raise ValueError(f"{source}: frame {i} {cam}: {ids.shape[0]} ids but xy has shape {xy.shape}")
             if not np.all(np.isfinite(xy)):
@@ -94,10 +96,11 @@ def outside_gate(T_cW: FloatArray, p_W: FloatArray, z: FloatArray, max_error: fl
     return bool(p_c[2] <= 0 or np.linalg.norm(p_c[:2] / p_c[2] - z) > max_error)
 
 
-def _attempts(obs: list[Observation]) -> list[list[Observation]]:
-    """The observation sets a track is triangulated from, in order: its static observations, then all of
-    them (only when they add a gimbal view); a set needs two distinct (keyframe, camera) views."""
-    static_obs = [ob for ob in obs if ob[1] == 0]
+def _attempts(obs: list[Observation], rigid: frozenset[int] = frozenset({0})) -> list[list[Observation]]:
+    """The observation sets a track is triangulated from, in order: its observations by cameras rigid to
+    the body (``rigid``: run indices, cam0 and rigid further cameras), then all of them (only when they
+    add a gimbal view); a set needs two distinct (keyframe, camera) views."""
+    static_obs = [ob for ob in obs if ob[1] in rigid]
     out = []
     for use in (static_obs, obs):
         if len({(ob[0], ob[1]) for ob in use}) < 2 or (use is obs and len(use) == len(static_obs)):
@@ -107,12 +110,16 @@ def _attempts(obs: list[Observation]) -> list[list[Observation]]:
 
 
 def triangulate_tracks(
-    tracks: list[list[Observation]], camera_pose: Callable[[int, int], FloatArray], options: VioOptions
+    tracks: list[list[Observation]],
+    camera_pose: Callable[[int, int], FloatArray],
+    options: VioOptions,
+    rigid: frozenset[int] = frozenset({0}),
 ) -> list[tuple[FloatArray, bool]]:
     """:func:`triangulate_track` of many tracks, the DLT and the checks batched over the tracks with the
-    same number of observations (the same arithmetic per track, without a Python loop per point)."""
+    same number of observations (the same arithmetic per track, without a Python loop per point).
+    ``rigid``: run indices of the cameras rigid to the body (preferred, :func:`_attempts`)."""
     out: list[tuple[FloatArray, bool]] = [(np.full(3, np.nan), False) for _ in tracks]
-    attempts = [_attempts(obs) for obs in tracks]
+    attempts = [_attempts(obs, rigid) for obs in tracks]
     for stage in (0, 1):
         # tracks still without a good point that have a set for this stage, grouped by its size
         groups: dict[int, list[int]] = {}
@@ -162,9 +169,13 @@ class LandmarkMap:
 
     ``active`` maps track id -> landmark index, ``position`` landmark index -> Point3 in W,
     ``last_seen_ns`` landmark index -> time of its newest observation; ``count`` landmarks made.
+    ``rigid``: run indices of the cameras rigid to the body. A track seen by two of them in one keyframe
+    (a static stereo pair) is ready at once, without waiting for ``min_track_keyframes``: the baseline
+    between the cameras makes it metric.
     """
 
-    def __init__(self) -> None:
+    def __init__(self, rigid: frozenset[int] = frozenset({0})) -> None:
+        self.rigid = rigid
         self.tracks: dict[int, Track] = {}
         self.active: dict[int, int] = {}
         self.position: dict[int, FloatArray] = {}
@@ -227,11 +238,11 @@ class LandmarkMap:
                 if len(kfs) < o.min_track_keyframes:
                     del self.tracks[tid]
                 continue
-            if len(kfs) >= o.min_track_keyframes:
+            if len(kfs) >= o.min_track_keyframes or self._stereo(tr.obs, k):
                 ready.append((tid, len(kfs)))
         # every ready track is triangulated at once (batched); in track order, the good ones become
         # landmarks until max_new_landmarks are made; the tracks after that are left as they are
-        results = triangulate_tracks([self.tracks[tid].obs for tid, _ in ready], pose, o)
+        results = triangulate_tracks([self.tracks[tid].obs for tid, _ in ready], pose, o, self.rigid)
         for (tid, n_kf), (p, ok) in zip(ready, results, strict=True):
             if len(made) >= o.max_new_landmarks:
                 break
@@ -242,6 +253,10 @@ class LandmarkMap:
             made.append(NewLandmark(self.add(tid, p, t_ns), p, self.tracks[tid].obs))
             del self.tracks[tid]
         return made
+
+    def _stereo(self, obs: list[Observation], k: int) -> bool:
+        """Whether two rigid cameras saw the track in keyframe ``k``."""
+        return len(self.rigid) > 1 and len({ob[1] for ob in obs if ob[0] == k and ob[1] in self.rigid}) >= 2
 
     def refresh(self, estimate: gtsam.Values, cutoff_ns: int) -> None:
         """Positions from the smoother's estimate; forget landmarks that left it or were last seen

@@ -8,10 +8,11 @@ from __future__ import annotations
 import dataclasses
 import logging
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import numpy as np
 
+from dcc_fg.data.cameras import RunCamera
 from dcc_fg.data.vio import ImuConfig, ImuSamples, TrackFrame, check_imu_against_frames, imu_out_of_range
 from dcc_fg.io.pairing import stamp_jitter_s
 from dcc_fg.model import GimbalCalibration
@@ -31,8 +32,10 @@ def run_vio(
     options: VioOptions | None = None,
     initial: InitialState | None = None,
     progress: Callable[[int, int], None] | None = None,
+    cameras: Sequence[RunCamera] = (),
 ) -> VioResult:
     """Run the smoother over time-ordered frames; ``initial`` (at the first frame) or standstill.
+    ``cameras``: the further cameras of an N-camera run (their tracks in :attr:`TrackFrame.extra`).
 
     IMU samples with non-finite values or beyond the sensor's range (``imu_config.acc_range``,
     ``gyro_range``) are dropped with a log line; an IMU rate too low for preintegration or frames
@@ -45,7 +48,7 @@ def run_vio(
     t_start = time.perf_counter()
     imu, dropped = drop_implausible_imu(imu, imu_config)
     check_imu_against_frames(imu.t_ns, np.array([f.timestamp_ns for f in frames], dtype=np.int64), "imu")
-    sm = VioSmoother(imu, imu_config, calibration, options)
+    sm = VioSmoother(imu, imu_config, calibration, options, cameras)
     if frames[0].timestamp_ns < imu.t_ns[0] or frames[-1].timestamp_ns > imu.t_ns[-1] + NS // 10:
         log.warning("camera frames extend beyond the IMU data; clipping to the IMU time span")
     frames = [f for f in frames if imu.t_ns[0] <= f.timestamp_ns <= imu.t_ns[-1]]

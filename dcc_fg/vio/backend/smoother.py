@@ -23,12 +23,14 @@ start (evaluate per segment).
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from typing import Any
 
 import gtsam
 import numpy as np
 from numpy.typing import NDArray
 
+from dcc_fg.data.cameras import RunCamera
 from dcc_fg.data.vio import ImuConfig, ImuSamples, TrackFrame
 from dcc_fg.model import GimbalCalibration
 from dcc_fg.util.errors import EstimatorError
@@ -75,7 +77,10 @@ class VioSmoother:
         imu_config: ImuConfig,
         calibration: GimbalCalibration | None,
         options: VioOptions,
+        cameras: Sequence[RunCamera] = (),
     ) -> None:
+        """``cameras``: the further cameras of an N-camera run (run index >= 2,
+        :func:`dcc_fg.data.cameras.run_cameras`); their tracks come in :attr:`TrackFrame.extra`."""
         validate_imu(imu)
         self.imu = imu
         self.cfg = imu_config
@@ -90,10 +95,10 @@ class VioSmoother:
         self.T_sI = np.asarray(imu_config.T_sI, float)
         self.params = preintegration_params(imu_config)
         self.robust = RobustLoss("huber", options.robust_k)
-        self.rig = CameraRig(calibration, self.T_sI, options)
+        self.rig = CameraRig(calibration, self.T_sI, options, cameras)
         self.exposure = ExposureModel(options, imu, self._mounts())
         self.window = FixedLagWindow(options)
-        self.landmarks = LandmarkMap()
+        self.landmarks = LandmarkMap(frozenset(c for c in (STATIC, *self.rig.extra) if self.rig.is_rigid(c)))
         self.k = -1
         self.kf_times: dict[int, int] = {}
         self.estimates: dict[int, KeyframeState] = {}
@@ -108,6 +113,7 @@ class VioSmoother:
             "landmarks": 0,
             "static_obs": 0,
             "dynamic_obs": 0,
+            "extra_obs": {c.name: 0 for c in cameras},
             "gated": 0,
             "failed_updates": 0,
         }
@@ -156,8 +162,10 @@ class VioSmoother:
     def _T_Wc(self, k: int, cam: int, theta: FloatArray | None = None) -> FloatArray:
         """Pose (camera -> W) of camera ``cam`` at keyframe ``k`` from its current estimate, at the
         exposure time of its image when that is timed (:mod:`.exposure`)."""
-        if cam == GIMBAL and theta is None:
+        if theta is None and (cam == GIMBAL or not self.rig.is_rigid(cam)):
             theta = self._theta_at(k)
+        if cam in self.rig.extra:  # exposed with the static image: T_Wc = T_Ws T_sc(theta)
+            return self._T_Wc(k, STATIC) @ chain.inv_se3(self.rig.extra[cam].T_cs_at(theta))
         est = self.estimates[k]
         T = self.exposure.T_Wc(k, cam, est.T_WI, est.v_W, theta)
         return T if T is not None else self.rig.T_Wc(est.T_WI, cam, theta)
@@ -180,6 +188,11 @@ class VioSmoother:
             self.exposure.add_image(k, STATIC, t, 0.0, pose, velocity, gyro_bias, None, None, graph, values, stamps)
         if self.opt.mode == "mono":
             return
+        if self.opt.mode == "dcc":
+            T_Ws = self.exposure.T_Wc(k, STATIC, pose.matrix(), velocity, None)
+            T_Ws = pose.matrix() @ chain.inv_se3(self.T_sI) if T_Ws is None else T_Ws
+            static = (self.exposure.is_timed(k, STATIC), self.exposure.shift.get((k, STATIC)))
+            self.rig.add_extra_camera_poses(k, t, T_Ws, self._theta_at(k, values), *static, graph, values, stamps)
         gap = frame.dynamic_gap_s
         theta = self._theta_at(k, values)
         if not self.exposure.gimbal_timed(gap):
@@ -606,6 +619,7 @@ class VioSmoother:
         cams = [(STATIC, frame.static_ids, frame.static_xy)]
         if o.mode != "mono":
             cams.append((GIMBAL, frame.dynamic_ids, frame.dynamic_xy))
+        cams.extend((c.camera, c.ids, c.xy) for c in frame.extra if c.camera in self.rig.extra)
         for cam, ids, xy in cams:
             if ids.size == 0:
                 continue
@@ -625,8 +639,18 @@ class VioSmoother:
 
     def _factor(self, k: int, cam: int, lm: int, z: FloatArray) -> gtsam.NonlinearFactor:
         """Reprojection factor of landmark ``lm`` seen by camera ``cam`` at keyframe k (counted)."""
-        self.stats["static_obs" if cam == STATIC else "dynamic_obs"] += 1
         self.vision_factors += 1
+        if cam in self.rig.extra:
+            self.stats["extra_obs"][self.rig.extra[cam].name] += 1
+            return self.rig.extra_factor(
+                k,
+                cam,
+                lm,
+                z,
+                self.exposure.is_timed(k, STATIC),
+                self.exposure.shift.get((k, STATIC)),
+            )
+        self.stats["static_obs" if cam == STATIC else "dynamic_obs"] += 1
         if self.exposure.is_timed(k, cam):
             key = static_camera_key(k) if cam == STATIC else camera_key(k)
             return self.rig.project_camera(z, key, landmark_key(lm))
