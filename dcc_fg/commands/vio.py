@@ -248,6 +248,12 @@ def imu_config(inputs: VioInputs) -> ImuConfig:
     return imu
 
 
+def camera_names(text: str) -> tuple[str, ...]:
+    """``--cameras``: comma-separated camera names; ``none``: no further camera."""
+    names = tuple(x.strip() for x in text.split(",") if x.strip())
+    return () if names == ("none",) else names
+
+
 def parse_angles(text: str, option: str) -> tuple[float, ...]:
     """``'1.57,0'`` or ``'1.57 0'`` -> (1.57, 0.0) (radians)."""
     try:
@@ -446,8 +452,8 @@ def add_vio_flags(v: argparse.ArgumentParser) -> None:
     opt(v, "--static-topic", "topics.static", help="static camera image topic (default /cam0/image_raw)")
     opt(v, "--dynamic-topic", "topics.dynamic", help="gimbal camera image topic (default: the primary gimbal camera's "
         "rostopic in the calibration, else /camN/image_raw: /cam1/image_raw for a two-camera calibration)")  # fmt: skip
-    opt(v, "--cameras", "run.cameras", type=lambda t: tuple(x.strip() for x in t.split(",") if x.strip()),
-        metavar="NAMES", help="N-camera calibration: the further cameras to use, e.g. 'cam1' (default: every camera "
+    opt(v, "--cameras", "run.cameras", type=camera_names, metavar="NAMES",
+        help="N-camera calibration: the further cameras to use, e.g. 'cam1', or 'none' (default: every camera "
         "the mode can use: static cameras in every mode, cameras on the gimbal chain in scc/dcc; cam0 and in "
         "scc/dcc the first camera on the chain are always used); their images are read from their rostopic in "
         "the calibration, else /camN/image_raw")  # fmt: skip

@@ -105,8 +105,9 @@ class FrontendConfig:
             cam0 <-> rigid further camera pair from the epipolar segment under the known ``T_cs``
             (a full epipolar test; KLT and corner noise are a few tenths of a pixel, the rest is
             left for calibration error).
-        match_klt: rigid further cameras: also follow cam0's unshared tracks into the camera with KLT
-            (:meth:`Frontend._seed_from_static`; sub-pixel pairs, and as many as the views share).
+        match_klt: also follow cam0's unshared tracks into a rigid further camera, and the gimbal camera's
+            into a further camera on the gimbal, with KLT (:meth:`Frontend._seed_from`; sub-pixel pairs,
+            and as many as the views share).
         dynamic_threshold: gimbal-camera epipolar (Sampson) threshold of the second stage.
         dynamic_rotation_threshold: gimbal-camera threshold when the motion is a pure rotation.
     """
@@ -536,7 +537,7 @@ class Frontend:
         if gimbal:
             self._match()
         t3 = time.perf_counter()
-        seen = [self._process_extra(k, image) for k, image in enumerate(images)]
+        seen = [self._process_extra(k, image, gimbal) for k, image in enumerate(images)]
         t4 = time.perf_counter()
         self.stats.frames += 1
         self.stats.static_ms.append(1e3 * (t1 - t0))
@@ -548,9 +549,12 @@ class Frontend:
             self.stats.frames_without_gimbal += 1
         return self.frame(timestamp_ns, gimbal, seen)
 
-    def _process_extra(self, k: int, image: NDArray[np.generic] | None) -> bool:
+    def _process_extra(self, k: int, image: NDArray[np.generic] | None, gimbal: bool = False) -> bool:
         """Track further camera ``k`` into its image, reject (rigid cameras only), refill and match it
-        with cam0; False when it has no image this frame."""
+        with cam0; a camera on the gimbal is first seeded from and matched with the gimbal camera (when
+        that has an image this frame, ``gimbal``): both sit on the same end effector, so their relative
+        pose ``T_cd = T_cs(theta) T_ds(theta)^-1`` is known exactly whatever the joint angles. False when
+        the camera has no image this frame."""
         cam, tracker = self.extra_cameras[k], self.extra[k]
         stats = self.stats
         if image is None:
@@ -561,11 +565,24 @@ class Frontend:
         if not cam.on_gimbal:
             self._reject_rigid(tracker)
         T_cs = self.extra_T_cs[k]
+        seeded = 0
+        T_cd = None
+        if cam.on_gimbal and gimbal and T_cs is not None and self.T_ds is not None and self.dynamic is not None:
+            T_cd = T_cs @ inv_se3(self.T_ds)
         if self.config.match_klt and not cam.on_gimbal and T_cs is not None:
-            stats.camera_seeded[cam.name] = stats.camera_seeded.get(cam.name, 0) + self._seed_from_static(tracker, T_cs)
+            seeded = self._seed_from(self.static, tracker, T_cs)
+        elif self.config.match_klt and T_cd is not None:
+            assert self.dynamic is not None
+            seeded = self._seed_from(self.dynamic, tracker, T_cd)
+        stats.camera_seeded[cam.name] = stats.camera_seeded.get(cam.name, 0) + seeded
         tracker.enforce_spacing()
         tracker.detect()
-        merged, split = self._match_pair(tracker, T_cs, exact=not cam.on_gimbal)
+        merged = split = 0
+        if T_cd is not None:
+            assert self.dynamic is not None
+            merged, split = self._match_pair(tracker, T_cd, exact=True, first=self.dynamic)
+        m, sp = self._match_pair(tracker, T_cs, exact=not cam.on_gimbal)
+        merged, split = merged + m, split + sp
         stats.camera_matches[cam.name] = stats.camera_matches.get(cam.name, 0) + merged
         stats.camera_pairs_split[cam.name] = stats.camera_pairs_split.get(cam.name, 0) + split
         stats.camera_ms[cam.name].append(1e3 * (time.perf_counter() - t0))
@@ -598,13 +615,14 @@ class Frontend:
         d = self.dynamic
         return TrackFrame(int(timestamp_ns), s.ids.copy(), s.xy.copy(), d.ids.copy(), d.xy.copy(), extra=extra)
 
-    def _seed_from_static(self, other: CameraTracker, T_cs: FloatArray) -> int:
-        """Follow cam0's tracks that ``other`` (a rigid camera with known ``T_cs``) does not share into
-        its image: pyramidal KLT from cam0's image, started at the image of each cam0 ray at infinite
-        depth (the baseline's parallax is left to the pyramid), forward-backward checked, and kept
-        when within ``match_rigid_threshold`` pixels of the epipolar segment (depths >=
-        ``match_min_depth``).  The new tracks take cam0's ids; returns how many."""
-        s, cfg = self.static, self.config
+    def _seed_from(self, first: CameraTracker, other: CameraTracker, T_cs: FloatArray) -> int:
+        """Follow the tracks of camera ``first`` that ``other`` does not share into ``other``'s image, the
+        two cameras' relative pose ``T_cs`` (``first`` -> ``other``) being known exactly (a rigid camera and
+        cam0, or two cameras on the gimbal's end effector): pyramidal KLT from ``first``'s image, started
+        at the image of each ray at infinite depth (the baseline's parallax is left to the pyramid),
+        forward-backward checked, and kept when within ``match_rigid_threshold`` pixels of the epipolar
+        segment (depths >= ``match_min_depth``).  The new tracks take ``first``'s ids; returns how many."""
+        s, cfg = first, self.config
         assert s.gray is not None and other.gray is not None
         cand = np.flatnonzero(~np.isin(s.ids, other.ids))
         if cand.size == 0:
@@ -747,8 +765,11 @@ class Frontend:
         self.stats.matches += merged
         self.stats.pairs_split += split
 
-    def _match_pair(self, other: CameraTracker, T_cs: FloatArray | None, exact: bool) -> tuple[int, int]:
-        """Match unshared tracks of cam0 and camera ``other`` and verify every shared pair geometrically.
+    def _match_pair(
+        self, other: CameraTracker, T_cs: FloatArray | None, exact: bool, first: CameraTracker | None = None
+    ) -> tuple[int, int]:
+        """Match unshared tracks of cam0 (or camera ``first``; ``T_cs`` then maps ``first`` into ``other``)
+        and camera ``other`` and verify every shared pair geometrically.
 
         New descriptor matches and the pairs already sharing an id are checked together
         (:meth:`_pair_inliers`: rotation RANSAC with the translation of the ``T_cs`` estimate, or with
@@ -757,7 +778,7 @@ class Frontend:
         (a KLT track slid onto another corner) are split by giving ``other``'s track a fresh id.
         Returns (matches merged, pairs split).
         """
-        s = self.static
+        s = self.static if first is None else first
         assert s.gray is not None and other.gray is not None
         cfg = self.config
         _, sh_s, sh_c = np.intersect1d(s.ids, other.ids, return_indices=True)

@@ -435,7 +435,8 @@ def run_vio_bag(
     cameras = run_cameras(calibration, options.mode, options.theta_fixed, pipeline.cameras)
     left_out = ignored_cameras(calibration, options.mode, cameras)
     if left_out:
-        log.warning("%s mode leaves out camera(s) %s of the cluster", options.mode, ", ".join(left_out))
+        how = log.info if pipeline.cameras is not None else log.warning  # asked for, or the mode's limit
+        how("%s mode leaves out camera(s) %s of the cluster", options.mode, ", ".join(left_out))
     mono = options.mode == "mono"
     t_wall = time.perf_counter()
     vb = VioBag(
