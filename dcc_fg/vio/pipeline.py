@@ -433,7 +433,8 @@ def run_vio_bag(
     pipeline = pipeline or PipelineOptions()
     check_bag_inputs(calibration, options, topics)
     cameras = run_cameras(calibration, options.mode, options.theta_fixed, pipeline.cameras)
-    left_out = ignored_cameras(calibration, options.mode, cameras)
+    primary = calibration.cluster().primary_gimbal_camera  # left out by mono's definition: not worth a warning
+    left_out = [c for c in ignored_cameras(calibration, options.mode, cameras) if c != primary]
     if left_out:
         how = log.info if pipeline.cameras is not None else log.warning  # asked for, or the mode's limit
         how("%s mode leaves out camera(s) %s of the cluster", options.mode, ", ".join(left_out))
