@@ -1,0 +1,61 @@
+"""N-camera VIO on rendered cluster flights (bags through the whole pipeline): the benchmark at a small
+size, and ``dcc-fg vio`` on the stereo + gimbal bag it rendered, with the cluster's own topics."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from benchmarks.bench_vio_cluster import main
+from dcc_fg.cli import main as cli
+from dcc_fg.vio.evaluate import evaluate_folder
+
+pytestmark = pytest.mark.slow  # renders two 12 s flights and runs each twice (~90 s)
+
+
+@pytest.fixture(scope="module")
+def bench(tmp_path_factory: pytest.TempPathFactory) -> tuple[dict[str, Any], Path]:
+    keep = tmp_path_factory.mktemp("flights")
+    return main(["--duration", "12", "--keep", str(keep)]), keep
+
+
+def test_cluster_runs_against_two_camera_runs(bench: tuple[dict[str, Any], Path]) -> None:
+    """Issue 16: stereo + gimbal translation RMSE <= the one-static-camera run of the same flight, joint RMSE
+    <= 1e-2 rad; two cameras on the gimbal: joint RMSE no worse than with one (mean of the joints' ratios,
+    5 % allowance as in tests/test_vio_cluster.py). Measured at 12 s: 0.66 / 1.47, 1.18 (stereo + gimbal;
+    translation / joints) and 0.60 / 0.91, 0.96 (gimbal pair); at 20 s 0.80 / 1.01, 1.30 and 0.65 / 0.85,
+    0.97."""
+    out, _ = bench
+    sg, gp = out["stereo+gimbal"], out["gimbal-pair"]
+    for r in (sg, gp):
+        for run in (r["all_cameras"], r["two_cameras"]):
+            assert run["failed_updates"] == 0 and max(run["joint_rmse_rad"]) <= 1e-2
+            assert run["real_time_factor"] > 0
+    assert sg["all_cameras"]["cameras"] == ["cam0", "cam2", "cam1"] and sg["two_cameras"]["cameras"] == ["cam0", "cam2"]
+    assert sg["all_cameras"]["extra_obs"]["cam1"] > 1000 and gp["all_cameras"]["extra_obs"]["cam2"] > 1000
+    assert sg["rmse_ratio"] <= 1.0
+    assert sum(gp["joint_rmse_ratio"]) / 2 <= 1.05
+
+
+def test_vio_command_on_a_cluster_bag(bench: tuple[dict[str, Any], Path], tmp_path: Path) -> None:
+    """``dcc-fg vio`` reads the cluster calibration.yaml: the gimbal camera is cam2 (its topic found from
+    the calibration), the stereo partner cam1 is a further camera; ``--cameras none`` leaves it out."""
+    _, keep = bench
+    folder = keep / "stereo_gimbal"
+    args = ["vio", str(folder / "flight"), "--calibration", str(folder / "calibration.yaml"), "--quiet"]
+    assert cli([*args, "--out", str(tmp_path / "all")]) == 0
+    assert cli([*args, "--cameras", "none", "--out", str(tmp_path / "two")]) == 0
+    s_all = json.loads((tmp_path / "all" / "summary.json").read_text())
+    s_two = json.loads((tmp_path / "two" / "summary.json").read_text())
+    assert (
+        s_all["run"]["topics"]["dynamic"] == "/cam2/image_raw" and s_all["run"]["topics"]["cam1"] == "/cam1/image_raw"
+    )
+    assert s_all["run"]["cameras"]["used"] == ["cam0", "cam2", "cam1"]
+    assert s_two["run"]["cameras"]["used"] == ["cam0", "cam2"] and s_two["extra_obs"] == {}
+    ev_all = evaluate_folder(tmp_path / "all", folder / "flight")
+    ev_two = evaluate_folder(tmp_path / "two", folder / "flight")
+    assert max(ev_all["joint_rmse_rad"]) <= 1e-2
+    assert ev_all["normalized_translation_rmse_percent"] <= ev_two["normalized_translation_rmse_percent"]
