@@ -18,7 +18,7 @@ import pytest
 import yaml
 
 from dcc_fg.cli import main
-from dcc_fg.data.cameras import run_cameras
+from dcc_fg.data.cameras import run_cameras, run_chains
 from dcc_fg.data.vio import CameraTracks, ImuConfig, TrackFrame
 from dcc_fg.model import GimbalCalibration
 from dcc_fg.sim.cluster_flight import flight_cluster
@@ -42,7 +42,8 @@ from factors import chain
         ("gimbal-pair", "mono", {}),
         ("gimbal-pair", "scc", {"cam2": False}),  # locked: rigid at the locked angles
         ("gimbal-pair", "dcc", {"cam2": True}),
-        ("two-gimbals", "dcc", {}),  # cam2 is on a second chain: left out
+        ("two-gimbals", "scc", {}),  # cam2 is on a second chain, which scc does not lock: left out
+        ("two-gimbals", "dcc", {"cam2": True}),  # its own joint-angle state (slot 1)
     ],
 )
 def test_run_cameras_roles(preset: str, mode: str, expected: dict[str, bool]) -> None:
@@ -51,14 +52,18 @@ def test_run_cameras_roles(preset: str, mode: str, expected: dict[str, bool]) ->
     cams = run_cameras(cal, mode, theta if mode == "scc" else None)
     assert {c.name: c.on_gimbal for c in cams} == expected
     assert [c.index for c in cams] == list(range(2, 2 + len(cams)))
-    for c in cams:  # every camera's pose relative to cam0 is the cluster's at those angles
-        assert np.allclose(c.T_cs_at(theta), cal.T_cs(c.name, theta), atol=1e-12)
+    for c in cams:  # every camera's pose relative to cam0 is the cluster's at its chain's angles
+        chain_theta = {ch: theta for ch in cal.cluster().chain_names}
+        assert np.allclose(c.T_cs_at(theta), cal.T_cs(c.name, chain_theta), atol=1e-12)
 
 
 def test_run_cameras_refuses_by_name() -> None:
     cal = GimbalCalibration.from_cluster(preset_cluster("two-gimbals")[0])
-    with pytest.raises(ValueError, match="cam2.*chain 'gimbal2'.*one chain"):
-        run_cameras(cal, "dcc", use=["cam2"])
+    with pytest.raises(ValueError, match="cam2 cannot be used in scc mode: it is on chain 'gimbal2'"):
+        run_cameras(cal, "scc", np.zeros(2), use=["cam2"])
+    (cam2,) = run_cameras(cal, "dcc")
+    assert cam2.chain == "gimbal2" and cam2.slot == 1 and run_chains(cal, "dcc") == ("gimbal", "gimbal2")
+    assert run_chains(cal, "dcc", use=[]) == ("gimbal",) and run_chains(cal, "mono") == ()
     with pytest.raises(ValueError, match="no camera cam7"):
         run_cameras(cal, "dcc", use=["cam7"])
     pair = GimbalCalibration.from_cluster(preset_cluster("gimbal-pair")[0])

@@ -8,12 +8,13 @@ A run numbers its cameras:
 * ``2, 3, ...``: every further camera the run uses (:class:`RunCamera`), in cluster order.
 
 A further camera is either *rigid* to the body (``T_cs`` constant: a static camera, a camera on a chain
-without joints, or in ``scc`` mode any camera on the locked chain at the locked angles) or on the
-*primary* chain (``kin`` = its chain parameters ``[tau_s, tau_d, dh]`` of :mod:`factors.chain`, sharing
-the primary camera's joint angles). Cameras on a second chain with joints would need a second
-joint-angle state, which the VIO does not have: :func:`run_cameras` leaves them out (listed by
-:func:`ignored_cameras`, for the log and the summary) and refuses them when they are asked for by
-name. ``mono`` mode uses cam0 and the rigid cameras only (a static stereo pair is ``mono`` with two static cameras).
+without joints, or in ``scc`` mode any camera on the locked chain at the locked angles) or on a chain
+with joints (``kin`` = its chain parameters ``[tau_s, tau_d, dh]`` of :mod:`factors.chain`): the primary
+chain (``slot`` 0, sharing the primary camera's joint angles) or, in ``dcc``, a further chain (``slot``
+1, 2, ... in cluster order, :func:`run_chains`), whose joint angles are a state of their own. ``scc``
+locks the primary chain only: cameras on further chains with joints are left out (listed by
+:func:`ignored_cameras`, for the log and the summary) and refused when asked for by name. ``mono`` mode
+uses cam0 and the rigid cameras only (a static stereo pair is ``mono`` with two static cameras).
 
 Frames: ``T_cs`` maps points of s into camera c (the paper's T^{c:s}); angles in rad.
 """
@@ -52,9 +53,12 @@ class RunCamera:
         name: the cluster's camera name (``cam1``, ``cam2``, ...).
         model: intrinsics.
         topic: image topic in a bag.
-        T_cs: rigid cameras: s -> c (4x4); None on the primary chain.
-        kin: cameras on the primary chain: ``[tau_s (6), tau_d (6), dh (3L)]``; None when rigid.
-        n_joints: L of the primary chain (0 for a rigid camera).
+        T_cs: rigid cameras: s -> c (4x4); None on a chain.
+        kin: cameras on a chain with joints: ``[tau_s (6), tau_d (6), dh (3L)]``; None when rigid.
+        n_joints: L of that chain (0 for a rigid camera).
+        chain: the chain's name (None when rigid).
+        slot: which joint-angle state the camera follows: 0 the primary chain's, 1, 2, ... further chains'
+            (:func:`run_chains`).
     """
 
     index: int
@@ -64,20 +68,22 @@ class RunCamera:
     T_cs: FloatArray | None = None
     kin: FloatArray | None = None
     n_joints: int = 0
+    chain: str | None = None
+    slot: int = 0
 
     def __post_init__(self) -> None:
         if self.index < 2:
             raise ValueError(f"{self.name}: run indices 0 and 1 are cam0 and the primary gimbal camera")
         if (self.T_cs is None) == (self.kin is None):
-            raise ValueError(f"{self.name}: a run camera is either rigid (T_cs) or on the primary chain (kin)")
+            raise ValueError(f"{self.name}: a run camera is either rigid (T_cs) or on a chain (kin)")
 
     @property
     def on_gimbal(self) -> bool:
-        """True when the camera moves with the primary chain's joint angles."""
+        """True when the camera moves with joint angles (of the chain in :attr:`slot`)."""
         return self.kin is not None
 
     def T_cs_at(self, theta: ArrayLike | None = None) -> FloatArray:
-        """s -> this camera (4x4) at the primary chain's joint angles ``theta`` (rad; ignored when rigid)."""
+        """s -> this camera (4x4) at its chain's joint angles ``theta`` (rad; ignored when rigid)."""
         if self.kin is None:
             assert self.T_cs is not None
             return self.T_cs
@@ -116,7 +122,8 @@ def run_cameras(
     ``use``: camera names to use (None: every camera the mode can use). cam0 is always used; the
     primary gimbal camera is used in ``scc`` / ``dcc`` and is not listed here. ``theta_fixed``: the
     locked angles of ``scc`` mode (rad). Raises ValueError naming the camera: unknown or unusable names
-    in ``use``, a camera without intrinsics, and in ``dcc`` mode a camera on a second chain with joints.
+    in ``use`` (a camera on a chain with joints in ``mono``, on a further chain in ``scc``) and a camera
+    without intrinsics.
     """
     if mode not in VIO_MODES:
         raise ValueError(f"unknown VIO mode {mode!r} (modes: {', '.join(VIO_MODES)})")
@@ -129,8 +136,8 @@ def run_cameras(
             raise ValueError(f"{where}: no camera {', '.join(unknown)} in the cluster (cameras: {', '.join(names)})")
     primary = cluster.primary_gimbal_camera
     primary_chain = cluster.camera(primary).chain
-    L = cluster.chain(primary_chain).n_joints if primary_chain is not None else 0
     theta = None if theta_fixed is None else np.asarray(theta_fixed, float).reshape(-1)
+    chains = run_chains(calibration, mode, use)
     out: list[RunCamera] = []
     index = 2
     for name in names[1:]:
@@ -143,15 +150,13 @@ def run_cameras(
         T_cs = _rigid(calibration, name, theta if mode == "scc" else None)
         kin = None
         if T_cs is None:
-            on_primary = mount.chain == primary_chain
-            if mode != "dcc" or not on_primary:
+            if mode != "dcc":
                 if use is None:
                     continue  # not usable in this mode: only an explicit request is an error
                 why = (
                     "mono mode uses rigid cameras only (static, or on a chain without joints)"
                     if mode == "mono"
-                    else f"it is on chain {mount.chain!r} but the VIO follows the joint angles of one chain "
-                    f"({primary_chain!r}) only"
+                    else f"it is on chain {mount.chain!r}, which scc does not lock (only {primary_chain!r})"
                 )
                 raise ValueError(f"{where}: camera {name} cannot be used in {mode} mode: {why}")
             kin = cluster.kin_of(name)
@@ -165,10 +170,32 @@ def run_cameras(
                 topic=mount.rostopic or default_topic(name),
                 T_cs=None if T_cs is None else np.asarray(T_cs, float),
                 kin=kin,
-                n_joints=L if kin is not None else 0,
+                n_joints=cluster.chain(mount.chain).n_joints if kin is not None and mount.chain else 0,
+                chain=mount.chain if kin is not None else None,
+                slot=chains.index(mount.chain) if kin is not None and mount.chain in chains else 0,
             )
         )
         index += 1
+    return tuple(out)
+
+
+def run_chains(calibration: GimbalCalibration, mode: str, use: Sequence[str] | None = None) -> tuple[str, ...]:
+    """The chains whose joint angles a run in ``mode`` estimates or holds, slot order: the primary chain
+    first (``scc`` / ``dcc``), then in ``dcc`` every further chain with joints that carries a camera the
+    run uses (``use``: the further cameras asked for, None: all)."""
+    if mode == "mono":
+        return ()
+    cluster = calibration.cluster()
+    primary = cluster.camera(cluster.primary_gimbal_camera).chain
+    assert primary is not None
+    out = [primary]
+    if mode == "dcc":
+        for mount in cluster.cameras:
+            ch = mount.chain
+            if ch is None or ch in out or cluster.chain(ch).n_joints == 0:
+                continue
+            if use is None or mount.name in use:
+                out.append(ch)
     return tuple(out)
 
 
