@@ -94,7 +94,7 @@ def _rig_and_truth(mode_timing: str) -> tuple[CameraRig, gtsam.Values, Any, dict
     graph = gtsam.NonlinearFactorGraph()
     stamps: dict[int, int] = {}
     static = (mode_timing == "timed", shift if mode_timing == "shifted" else None)
-    rig.add_extra_camera_poses(0, 0, T_Ws, theta, *static, graph, values, stamps)
+    rig.add_extra_camera_poses(0, 0, T_Ws, lambda slot: theta, *static, graph, values, stamps)
     truth = {"T_Ws": T_Ws, "theta": theta, "static": static, "cams": cams}
     return rig, values, graph, truth
 

@@ -268,7 +268,13 @@ class SmootherDriver:
         self.t_start_data = t
         if self.options.mode == "dcc":
             self.kf_prev = (t, self.smoother.theta.copy())
-            self.worker.push_theta(t, self.smoother.theta)
+            self.worker.push_theta(t, self._all_theta())
+
+    def _all_theta(self) -> FloatArray:
+        """The newest joint angles of every chain the run follows, flat in slot order (primary first)."""
+        assert self.smoother is not None
+        chains = self.smoother.chains
+        return np.concatenate([self.smoother.theta, *(chains.theta[ch.slot] for ch in chains.chains)])
 
     def _keyframe_added(self, item: Tracked) -> None:
         """dcc keyframe: push its joint angles to the front end; stage two: the joint angles were
@@ -277,7 +283,7 @@ class SmootherDriver:
         assert self.kf_prev is not None and self.smoother is not None
         t = item.frame.timestamp_ns
         theta_k = self.smoother.theta.copy()
-        self.worker.push_theta(t, theta_k)
+        self.worker.push_theta(t, self._all_theta())
         if item.snapshot is not None and not item.after_gap:
             t_k0, theta_k0 = self.kf_prev
             w = (self.t_prev - t_k0) / max(t - t_k0, 1)

@@ -27,7 +27,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -85,6 +85,20 @@ class ThetaTrack:
         return th1 + rate * min(t_ns - t1, t1 - t0)  # extrapolate at most one keyframe interval
 
 
+def chain_sizes(primary_joints: int, extra: Sequence[RunCamera]) -> list[int]:
+    """Joint counts of the chains a run follows, slot order: the primary chain, then the further ones."""
+    sizes = {0: primary_joints}
+    for c in extra:
+        if c.on_gimbal and c.slot >= 1:
+            sizes[c.slot] = c.n_joints
+    return [sizes[s] for s in sorted(sizes)]
+
+
+def split_theta(flat: FloatArray, sizes: Sequence[int]) -> list[FloatArray]:
+    """The flat joint-angle vector (chains in slot order, :func:`chain_sizes`) split per chain."""
+    return np.split(np.asarray(flat, float), np.cumsum(sizes)[:-1])
+
+
 @dataclass(frozen=True)
 class Tracked:
     """One frame out of the front end: its index among the bag's frame pairs, its tracks, whether it
@@ -126,12 +140,16 @@ class _Tracker:
         cal = spec.calibration
         assert cal.static_camera is not None
         mono = spec.dynamic_topic is None
+        # the joint angles the front end follows: the primary chain's, then each further chain's (slot order)
+        self.sizes = chain_sizes(cal.n_joints, spec.extra)
         theta0 = np.asarray(spec.theta0, float)
+        if theta0.size < sum(self.sizes):
+            theta0 = np.r_[theta0, np.zeros(sum(self.sizes) - theta0.size)]
         self.frontend = Frontend(
             cal.static_camera,
             None if mono else cal.dynamic_camera,
             spec.config,
-            T_ds=None if mono else cal.T_ds(theta0),
+            T_ds=None if mono else cal.T_ds(theta0[: self.sizes[0]]),
             extra=spec.extra,
         )
         self.thetas = ThetaTrack(theta0, spec.t_range[0])
@@ -159,12 +177,12 @@ class _Tracker:
             if vf.after_gap and started:
                 fe.reset()
                 self.resets += 1
-            theta = self.thetas.at(t)
-            T_ds = None if mono else spec.calibration.T_ds(theta)
+            theta = split_theta(self.thetas.at(t), self.sizes)
+            T_ds = None if mono else spec.calibration.T_ds(theta[0])
             for image in vf.dynamic_between:
                 fe.track_gimbal(image)
-            # the further cameras follow the same extrapolated joint angles (rigid ones ignore them)
-            extra_T_cs = [c.T_cs_at(theta) for c in spec.extra] if spec.extra else None
+            # the further cameras follow their chain's extrapolated joint angles (rigid ones ignore them)
+            extra_T_cs = [c.T_cs_at(theta[c.slot]) for c in spec.extra] if spec.extra else None
             frame = fe.process(t, vf.static, vf.dynamic, T_ds=T_ds, extra_images=vf.extra, extra_T_cs=extra_T_cs)
             if vf.dynamic is not None:
                 frame = dataclasses.replace(frame, dynamic_timestamp_ns=int(vf.dynamic_timestamp_ns))

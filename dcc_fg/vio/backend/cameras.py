@@ -24,7 +24,7 @@ own chain parameters (its own ``tau_d``), like the gimbal camera's ``c(k)``; wit
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import gtsam
 import numpy as np
@@ -33,6 +33,7 @@ from dcc_fg.data.cameras import RunCamera
 from dcc_fg.model import GimbalCalibration
 from dcc_fg.vio.backend.keys import (
     camera_key,
+    chain_theta_key,
     extra_camera_key,
     landmark_key,
     pose_key,
@@ -75,10 +76,10 @@ class CameraRig:
         self._extra_chain: dict[int, ChainCache] = {}  # primary chain: its own tau_d
         for c in extra:
             if c.on_gimbal:
-                if options.mode != "dcc" or calibration is None:
-                    raise ValueError(f"camera {c.name} is on the gimbal chain: it needs dcc mode")
+                if options.mode != "dcc":
+                    raise ValueError(f"camera {c.name} is on a gimbal chain: it needs dcc mode")
                 assert c.kin is not None
-                self._extra_chain[c.index] = ChainCache(c.kin, self.L)
+                self._extra_chain[c.index] = ChainCache(c.kin, c.n_joints)
             else:
                 self._extra_body[c.index] = ProjectionFactory(options.sigma, c.T_cI(T_sI), options.robust_k)
                 self._extra_static[c.index] = ProjectionFactory(options.sigma, c.T_cs_at(), options.robust_k)
@@ -135,8 +136,14 @@ class CameraRig:
             return self.project_camera(z, extra_camera_key(k, cam), landmark_key(lm))
         key, T_sX = self._static_exposure(k, static_timed, static_shift)
         return gimbal_reprojection_factor(
-            z, o.sigma, key, landmark_key(lm), theta_key(k), self._extra_chain[cam], T_sX, o.robust_k
+            z, o.sigma, key, landmark_key(lm), self.theta_key(k, cam), self._extra_chain[cam], T_sX, o.robust_k
         )
+
+    def theta_key(self, k: int, cam: int) -> int:
+        """The joint-angle variable further camera ``cam`` follows at keyframe ``k``: ``t(k)`` on the primary
+        chain, ``u(64 k + slot)`` on a further chain (:mod:`.chains`)."""
+        slot = self.extra[cam].slot
+        return theta_key(k) if slot == 0 else chain_theta_key(k, slot)
 
     def _static_exposure(self, k: int, static_timed: bool, static_shift: gtsam.Pose3 | None) -> tuple[int, FloatArray]:
         """The variable holding the static camera's pose at its exposure in keyframe ``k`` and the transform
@@ -153,7 +160,7 @@ class CameraRig:
         k: int,
         t_ns: int,
         T_Ws: FloatArray,
-        theta: FloatArray,
+        theta_of: Callable[[int], FloatArray],
         static_timed: bool,
         static_shift: gtsam.Pose3 | None,
         graph: gtsam.NonlinearFactorGraph,
@@ -161,17 +168,19 @@ class CameraRig:
         stamps: dict[int, int],
     ) -> None:
         """dcc with ``gimbal_factor='camera_pose'``: the auxiliary pose ``e(k)`` = ``T_Wc`` of every further
-        camera on the gimbal chain at keyframe ``k`` (start value from the static camera's pose ``T_Ws`` at
-        the exposure and ``theta``) and its eq. 13 tie to the static camera's pose and ``t(k)``."""
+        camera on a gimbal chain at keyframe ``k`` (start value from the static camera's pose ``T_Ws`` at
+        the exposure and its chain's angles ``theta_of(slot)``) and its eq. 13 tie to the static camera's
+        pose and the chain's joint angles (:meth:`theta_key`)."""
         if self.opt.gimbal_factor != "camera_pose" or not self._extra_chain:
             return
         key, T_sX = self._static_exposure(k, static_timed, static_shift)
         sig = self.opt.camera_pose_sigma
         for cam, cache in self._extra_chain.items():
             e = extra_camera_key(k, cam)
+            theta = theta_of(self.extra[cam].slot)
             values.insert(e, gtsam.Pose3(T_Ws @ chain.inv_se3(self.extra[cam].T_cs_at(theta))))
             stamps[e] = t_ns
-            graph.add(gimbal_camera_pose_factor(key, theta_key(k), e, cache, T_sX, sig, sig))
+            graph.add(gimbal_camera_pose_factor(key, self.theta_key(k, cam), e, cache, T_sX, sig, sig))
 
     def project_shifted(self, z: FloatArray, pose_k: int, landmark: int, T_Ic: gtsam.Pose3) -> gtsam.NonlinearFactor:
         """Projection factor on the body pose ``x(k)`` through a per-keyframe mount ``T_Ic`` (a camera with a

@@ -6,14 +6,16 @@ Per keyframe k: ``pose_key(k)`` = x(k) Pose3 ``T_WI``; ``velocity_key(k)`` = v(k
 (``dcc`` with ``gimbal_factor='camera_pose'``, or any mode whose gimbal images are timed:
 :mod:`.exposure`); ``static_camera_key(k)`` = s(k) Pose3 ``T_Ws`` of the static camera at its exposure
 time (when its time offset is estimated or not zero); ``extra_camera_key(k, cam)`` = e(64 k + cam)
-Pose3 ``T_Wc`` of further camera ``cam`` (run index >= 2) on the gimbal chain (``dcc``). ``offsets_key`` =
+Pose3 ``T_Wc`` of further camera ``cam`` (run index >= 2) on a gimbal chain (``dcc``);
+``chain_theta_key(k, slot)`` = u(64 k + slot) the joint angles of further chain ``slot`` >= 1 (Vector, rad;
+:mod:`.chains`). ``offsets_key`` =
 o(0) the time offsets ``[t_s, t_d]`` (Vector 2, s; one variable for the whole run, never marginalized).
 Per landmark n: ``landmark_key(n)`` = l(n) Point3 in W.
 """
 
 from __future__ import annotations
 
-from gtsam.symbol_shorthand import B, C, E, L, O, S, T, V, X
+from gtsam.symbol_shorthand import B, C, E, L, O, S, T, U, V, X
 
 #: Run indices of further cameras are below this (the per-keyframe stride of :func:`extra_camera_key`).
 MAX_CAMERAS = 64
@@ -35,9 +37,17 @@ def extra_camera_key(k: int, cam: int) -> int:
     return int(E(k * MAX_CAMERAS + cam))
 
 
+def chain_theta_key(k: int, slot: int) -> int:
+    """u(64 k + slot): the joint angles of further chain ``slot`` (1..63) at keyframe ``k``."""
+    if not 1 <= slot < MAX_CAMERAS:
+        raise ValueError(f"slot {slot} of a further chain must be in 1..{MAX_CAMERAS - 1}")
+    return int(U(k * MAX_CAMERAS + slot))
+
+
 __all__ = [
     "bias_key",
     "camera_key",
+    "chain_theta_key",
     "extra_camera_key",
     "landmark_key",
     "offsets_key",

@@ -190,3 +190,5 @@ class VioResult:
     #: (N, L) 1-sigma of the joint angles (rad) from the window's marginal covariance just before each
     #: keyframe left it (``joint_sigmas``; NaN where a keyframe left without one, e.g. at a restart), or None
     theta_sigma: FloatArray | None = None
+    #: further gimbal chains of an N-camera run: chain name -> (N, L) joint angles (rad) per keyframe
+    chain_theta: dict[str, FloatArray] = field(default_factory=dict)

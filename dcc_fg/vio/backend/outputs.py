@@ -1,5 +1,6 @@
 """Files of a VIO run: ``trajectory.tum`` (body/IMU frame ``T_WI``), ``joint_angles.csv`` (and with
-``joint_sigmas`` ``joint_angles_sigma.csv``) and ``summary.json``."""
+``joint_sigmas`` ``joint_angles_sigma.csv``; further gimbal chains of an N-camera run
+``joint_angles_<chain>.csv``) and ``summary.json``."""
 
 from __future__ import annotations
 
@@ -38,6 +39,8 @@ def write_vio_outputs(out_dir: str | Path, result: VioResult, extra: dict[str, A
         write_joint_angles_csv(out / "joint_angles.csv", result.timestamps_ns, result.theta)
         if result.theta_sigma is not None:
             write_joint_sigmas_csv(out / "joint_angles_sigma.csv", result.timestamps_ns, result.theta_sigma)
+    for name, theta in result.chain_theta.items():  # further gimbal chains of an N-camera run
+        write_joint_angles_csv(out / f"joint_angles_{name}.csv", result.timestamps_ns, theta)
     summary = {
         "mode": result.mode,
         "keyframes": int(result.timestamps_ns.size),

@@ -35,6 +35,7 @@ from dcc_fg.data.vio import ImuConfig, ImuSamples, TrackFrame
 from dcc_fg.model import GimbalCalibration
 from dcc_fg.util.errors import EstimatorError
 from dcc_fg.vio.backend.cameras import GIMBAL, STATIC, CameraRig
+from dcc_fg.vio.backend.chains import ChainStates
 from dcc_fg.vio.backend.divergence import DivergenceLimits, divergence
 from dcc_fg.vio.backend.exposure import ExposureModel
 from dcc_fg.vio.backend.imu import preintegrate, preintegration_params, standstill_state, validate_imu
@@ -96,6 +97,7 @@ class VioSmoother:
         self.params = preintegration_params(imu_config)
         self.robust = RobustLoss("huber", options.robust_k)
         self.rig = CameraRig(calibration, self.T_sI, options, cameras)
+        self.chains = ChainStates(cameras, options, self.T_sI)  # further chains' joint angles (dcc)
         self.exposure = ExposureModel(options, imu, self._mounts())
         self.window = FixedLagWindow(options)
         self.landmarks = LandmarkMap(frozenset(c for c in (STATIC, *self.rig.extra) if self.rig.is_rigid(c)))
@@ -159,11 +161,19 @@ class VioSmoother:
             return values.atVector(theta_key(k))
         return self.estimates[k].theta if k in self.estimates else self.theta
 
+    def _theta_for(self, k: int, cam: int, values: gtsam.Values | None = None) -> FloatArray:
+        """Joint angles camera ``cam`` follows at keyframe ``k``: a further chain's for a camera on it,
+        else the primary chain's (:meth:`_theta_at`)."""
+        c = self.rig.extra.get(cam)
+        if c is not None and c.slot >= 1:
+            return self.chains.theta_at(k, c.slot, values)
+        return self._theta_at(k, values)
+
     def _T_Wc(self, k: int, cam: int, theta: FloatArray | None = None) -> FloatArray:
         """Pose (camera -> W) of camera ``cam`` at keyframe ``k`` from its current estimate, at the
         exposure time of its image when that is timed (:mod:`.exposure`)."""
         if theta is None and (cam == GIMBAL or not self.rig.is_rigid(cam)):
-            theta = self._theta_at(k)
+            theta = self._theta_for(k, cam)
         if cam in self.rig.extra:  # exposed with the static image: T_Wc = T_Ws T_sc(theta)
             return self._T_Wc(k, STATIC) @ chain.inv_se3(self.rig.extra[cam].T_cs_at(theta))
         est = self.estimates[k]
@@ -192,7 +202,11 @@ class VioSmoother:
             T_Ws = self.exposure.T_Wc(k, STATIC, pose.matrix(), velocity, None)
             T_Ws = pose.matrix() @ chain.inv_se3(self.T_sI) if T_Ws is None else T_Ws
             static = (self.exposure.is_timed(k, STATIC), self.exposure.shift.get((k, STATIC)))
-            self.rig.add_extra_camera_poses(k, t, T_Ws, self._theta_at(k, values), *static, graph, values, stamps)
+
+            def theta_of(slot: int) -> FloatArray:
+                return self._theta_at(k, values) if slot == 0 else self.chains.theta_at(k, slot, values)
+
+            self.rig.add_extra_camera_poses(k, t, T_Ws, theta_of, *static, graph, values, stamps)
         gap = frame.dynamic_gap_s
         theta = self._theta_at(k, values)
         if not self.exposure.gimbal_timed(gap):
@@ -255,6 +269,7 @@ class VioSmoother:
         dcc = self.opt.mode == "dcc"
         sigmas = sigmas or AnchorSigmas.first_keyframe(self.opt)
         graph, values, stamps = anchor_factors(0, t, pose, v, self.bias, self.theta if dcc else None, sigmas)
+        self.chains.anchor(0, t, sigmas.theta, graph, values, stamps, self.chains.fit_pairs(frame))
         self.exposure.anchor(graph, values, stamps, t)
         self.segments.append({"k": 0, "start_ns": t, "reason": "start"})
         self._add_camera_poses(0, frame, pose, v, graph, values, stamps)
@@ -312,6 +327,8 @@ class VioSmoother:
         graph, values, stamps, pred = self._propagate(k_prev, k, t)
         if self.opt.mode == "dcc":
             self._add_joint_angles(k_prev, k, frame, pred.pose(), theta_measurement, graph, values, stamps)
+            dt = (t - self.kf_times[k_prev]) / NS
+            self.chains.add(k_prev, k, dt, frame, pred.pose().matrix(), self.landmarks, t, graph, values, stamps)
         self._add_camera_poses(k, frame, pred.pose(), pred.velocity(), graph, values, stamps)
         self._zero_velocity(k_prev, k, frame, graph)
         self._observe(k, frame, graph, values, stamps)
@@ -448,6 +465,8 @@ class VioSmoother:
             o.restart_theta_sigma,
         )
         graph, values, stamps = anchor_factors(k, t, pose, v, bias, theta if dcc else None, sigmas)
+        further = self.chains.fit_pairs(frame) if frame is not None else None
+        self.chains.anchor(k, t, sigmas.theta, graph, values, stamps, further)
         self.exposure.before_restart(self.window.smoother)
         self.exposure.anchor(graph, values, stamps, t)
         self.state = gtsam.NavState(pose, v)
@@ -615,7 +634,6 @@ class VioSmoother:
         t = frame.timestamp_ns
         o = self.opt
         lms = self.landmarks
-        theta_k = self._theta_at(k, values)
         cams = [(STATIC, frame.static_ids, frame.static_xy)]
         if o.mode != "mono":
             cams.append((GIMBAL, frame.dynamic_ids, frame.dynamic_xy))
@@ -623,7 +641,7 @@ class VioSmoother:
         for cam, ids, xy in cams:
             if ids.size == 0:
                 continue
-            T_cW = chain.inv_se3(self._T_Wc(k, cam, theta_k))
+            T_cW = chain.inv_se3(self._T_Wc(k, cam, self._theta_for(k, cam, values)))
             for tid, z in zip(ids.tolist(), xy, strict=True):
                 lm = lms.active.get(tid)
                 if lm is None:
@@ -738,6 +756,7 @@ class VioSmoother:
         self.bias = est.atConstantBias(bias_key(k))
         if self.opt.mode == "dcc":
             self.theta = est.atVector(theta_key(k))
+        self.chains.refresh(est, self.kf_times, k)
         self.landmarks.refresh(est, self.kf_times[k] - int(self.opt.lag * NS))
         self.stats["keyframes"] = k + 1
 
@@ -761,6 +780,8 @@ class VioSmoother:
             theta,
             AnchorSigmas.recovery(self.opt),
         )
+        further = {ch.slot: self.chains.theta_at(k, ch.slot, values) for ch in self.chains.chains}
+        self.chains.anchor(k, t, AnchorSigmas.recovery(self.opt).theta, graph, new, stamps, further)
         self.exposure.anchor(graph, new, stamps, t)
         if theta is not None:
             self.rig.add_gimbal_camera_pose(k, t, pose, theta, graph, new, stamps)
@@ -798,6 +819,7 @@ class VioSmoother:
         self.landmarks.clear()
         self.exposure.forget(k + 1)
         g, vals, st = anchor_factors(k, t, pose, v, bias, theta, AnchorSigmas.recovery(self.opt))
+        self.chains.anchor(k, t, AnchorSigmas.recovery(self.opt).theta, g, vals, st)
         self.exposure.anchor(g, vals, st, t)
         if theta is not None:
             self.rig.add_gimbal_camera_pose(k, t, pose, theta, g, vals, st)
@@ -825,6 +847,7 @@ class VioSmoother:
         if want_sigmas and self.k >= 0:
             self._joint_sigmas(leaving_only=False)
         res = result_from_states(self.estimates, self.opt.mode, self.stats, self.theta_sigma if want_sigmas else None)
+        res.chain_theta = self.chains.result(sorted(self.estimates))
         res.stats.update(self.recovery_stats(res.timestamps_ns))
         res.stats["time_offsets"] = self.exposure.summary(self.window.smoother, gimbal=self.opt.mode != "mono")
         return res
