@@ -8,18 +8,20 @@ within ``max_diff`` seconds):
 * RPE of the translation over ``rpe_delta`` metres of travel (m);
 * normalized translation RMSE = 100 * APE RMSE / distance travelled (percent; Table IV);
 * normalized rotation RMSE = RMSE of the rotation-angle error after alignment / distance (rad/m);
-* joint-angle RMSE per joint (rad; Table V), ground truth linearly interpolated to the keyframes.
+* joint-angle RMSE per joint (rad; Table V), ground truth linearly interpolated to the keyframes; for
+  the further gimbal chains of an N-camera run (``joint_angles_<chain>.csv``) per chain.
 
 Ground truth is a TUM file (body/IMU frame) or a ROS1/ROS2 bag with ``geometry_msgs/PoseStamped``
-on ``/ground_truth/pose`` and ``sensor_msgs/JointState`` on ``/ground_truth/joints`` (what the
-flight simulator writes; topic names are parameters).
+on ``/ground_truth/pose`` and ``sensor_msgs/JointState`` on ``/ground_truth/joints`` (the primary
+chain) and ``/ground_truth/joints_<chain>`` (further chains), what the flight simulator writes (the pose
+and primary joint topic names are parameters).
 """
 
 from __future__ import annotations
 
 import copy
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -42,40 +44,64 @@ JOINT_TOPIC = "/ground_truth/joints"
 
 @dataclass(frozen=True)
 class GroundTruth:
-    """Body poses ``T_WI`` (N, 4, 4) at ``t_ns`` and optional joint angles (M, L) at ``joint_t_ns``."""
+    """Body poses ``T_WI`` (N, 4, 4) at ``t_ns`` and optional joint angles (M, L) at ``joint_t_ns``;
+    ``chains``: further gimbal chains' joint angles, chain name -> (times ns (M,), angles (M, L) rad)."""
 
     t_ns: IntArray
     T_WI: FloatArray
     joint_t_ns: IntArray | None = None
     joints: FloatArray | None = None
+    chains: dict[str, tuple[IntArray, FloatArray]] = field(default_factory=dict)
+
+    def chain(self, name: str) -> GroundTruth:
+        """This ground truth with further chain ``name``'s joint angles as its joints (for :func:`joint_rmse`);
+        ValueError when it has none."""
+        if name not in self.chains:
+            raise ValueError(f"the ground truth has no joint angles of chain {name!r} (topic {JOINT_TOPIC}_{name})")
+        t, q = self.chains[name]
+        return GroundTruth(self.t_ns, self.T_WI, t, q)
 
 
 def _read_bag_ground_truth(path: Path, pose_topic: str, joint_topic: str) -> GroundTruth:
     poses: list[tuple[int, list[float]]] = []
     joints: list[tuple[int, list[float]]] = []
+    further: dict[str, list[tuple[int, list[float]]]] = {}
+    chain_prefix = JOINT_TOPIC + "_"
     with bag_reader(path) as reader:
         topics = {c.topic for c in reader.connections}
         if pose_topic not in topics:
             raise ValueError(f"{path}: no ground-truth topic '{pose_topic}' (topics: {', '.join(sorted(topics))})")
-        conns = [c for c in reader.connections if c.topic in (pose_topic, joint_topic)]
+        wanted = {pose_topic, joint_topic} | {t for t in topics if t.startswith(chain_prefix)}
+        conns = [c for c in reader.connections if c.topic in wanted]
         for conn, t, raw in reader.messages(connections=conns):
             msg = reader.deserialize(raw, conn.msgtype)
             stamp = stamp_ns(msg, t)
             if conn.topic == pose_topic:
                 p, q = msg.pose.position, msg.pose.orientation
                 poses.append((stamp, [p.x, p.y, p.z, q.x, q.y, q.z, q.w]))
-            else:
+            elif conn.topic == joint_topic:
                 joints.append((stamp, [float(x) for x in msg.position]))
+            else:
+                further.setdefault(conn.topic[len(chain_prefix) :], []).append(
+                    (stamp, [float(x) for x in msg.position])
+                )
     poses.sort(key=lambda x: x[0])
     arr = np.array([p for _, p in poses])
     T = np.tile(np.eye(4), (arr.shape[0], 1, 1))
     T[:, :3, :3] = Rotation.from_quat(arr[:, 3:7]).as_matrix()
     T[:, :3, 3] = arr[:, :3]
     t = np.array([s for s, _ in poses], dtype=np.int64)
+    chains = {name: _joint_series(rows) for name, rows in further.items()}
     if not joints:
-        return GroundTruth(t, T)
-    joints.sort(key=lambda x: x[0])
-    return GroundTruth(t, T, np.array([s for s, _ in joints], dtype=np.int64), np.array([q for _, q in joints]))
+        return GroundTruth(t, T, chains=chains)
+    jt, jq = _joint_series(joints)
+    return GroundTruth(t, T, jt, jq, chains)
+
+
+def _joint_series(rows: list[tuple[int, list[float]]]) -> tuple[IntArray, FloatArray]:
+    """JointState rows (stamp ns, positions) as time-sorted arrays."""
+    rows = sorted(rows, key=lambda x: x[0])
+    return np.array([s for s, _ in rows], dtype=np.int64), np.array([q for _, q in rows], dtype=float)
 
 
 def load_ground_truth(path: str | Path, pose_topic: str = POSE_TOPIC, joint_topic: str = JOINT_TOPIC) -> GroundTruth:
@@ -248,6 +274,12 @@ def evaluate_folder(out_dir: str | Path, ground_truth: str | Path, align: str = 
         rmse = joint_rmse(jt, theta, gt)
         if rmse is not None:
             result["joint_rmse_rad"] = rmse
+    for csv in sorted(out_dir.glob("joint_angles_*.csv")):  # further gimbal chains
+        name = csv.stem[len("joint_angles_") :]
+        if name == "sigma" or name not in gt.chains:
+            continue
+        jt, theta = read_joint_angles_csv(csv)
+        result.setdefault("chain_joint_rmse_rad", {})[name] = joint_rmse(jt, theta, gt.chain(name))
     return result
 
 
