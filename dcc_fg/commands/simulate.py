@@ -57,16 +57,20 @@ FLIGHT_DESCRIPTION = (
     "time, keyed by its header stamp). --rates, --phase, --time-offsets and --stamp-jitter make the cameras "
     "unsynchronized (convention t_imu = t_cam_stamp + t_offset); the truth is then also in calibration.yaml "
     "flight.timing and ground_truth_frames.csv. --cluster adds cameras (an N-camera cluster): every camera's "
-    "images on /camN/image_raw, the cluster's layout in calibration.yaml."
+    "images on /camN/image_raw, the cluster's layout in calibration.yaml; a further gimbal chain moves on its own, "
+    "its truth on /ground_truth/joints_<chain> and in ground_truth_joints_<chain>.csv."
 )
 FLIGHT_CLUSTER_HELP = (
     "fly an N-camera cluster instead of the two cameras: a preset, stereo+gimbal (cam0 + cam1 a static stereo "
     "pair 11 cm apart, cam2 the flight's gimbal camera) or gimbal-pair (cam1 the flight's gimbal camera, cam2 a "
-    "thermal-like camera 4 cm beside it on the same gimbal), or a cluster calibration YAML file (cameras: / "
-    "chains:, every camera with intrinsics, a 2-joint primary chain, no second chain with joints; intrinsics "
-    "scaled by --scale). The primary chain and its joint motion are the flight's; further cameras are triggered "
-    "with cam0 (its exposure times and stamps, whatever the timing flags); each camera's images on its rostopic "
-    "or /camN/image_raw; calibration.yaml holds the cluster (cameras:/chains:) and flight.cluster"
+    "thermal-like camera 4 cm beside it on the same gimbal), two-gimbals (cam1 the flight's gimbal camera, cam2 "
+    "a thermal-like camera on a second 2-joint gimbal gimbal2 mounted 20 cm to the left, moving on its own), or a "
+    "cluster calibration YAML file (cameras: / chains:, every camera with intrinsics, 2-joint chains; intrinsics "
+    "scaled by --scale). The primary chain and its joint motion are the flight's; every further chain with joints "
+    "moves on its own (other sinusoids and slews, locked with --gimbal locked), its truth on "
+    "/ground_truth/joints_<chain> and in ground_truth_joints_<chain>.csv; further cameras are triggered with cam0 "
+    "(its exposure times and stamps, whatever the timing flags); each camera's images on its rostopic or "
+    "/camN/image_raw; calibration.yaml holds the cluster (cameras:/chains:) and flight.cluster"
 )
 
 
@@ -246,7 +250,7 @@ def simulate_flight_command(args: argparse.Namespace) -> int:
     print(
         f"wrote {res.bag} ({images}, {res.truth.distance:.1f} m, "
         f"{res.render_ms_per_pair:.1f} ms CPU rendering per pair, {res.seconds:.1f} s), {res.calibration}, "
-        f"{res.ground_truth}, {res.joints}"
+        f"{res.ground_truth}, {', '.join(str(p) for p in (res.joints, *res.chain_joints.values()))}"
     )
     return 0
 
@@ -255,7 +259,7 @@ def check_cluster_arg(spec: str, scale: float) -> None:
     """ValueError naming ``--cluster`` unless ``spec`` is a flight cluster preset or a usable cluster file."""
     if spec not in FLIGHT_PRESETS and not Path(spec).is_file():
         why = (
-            f"{spec} is a preset of 'simulate calibration --cluster'; a flight moves one chain"
+            f"{spec} is a preset of 'simulate calibration --cluster' only"
             if spec in CLUSTER_PRESETS
             else f"unknown preset {spec!r} and no such file"
         )

@@ -11,7 +11,14 @@ Presets (:data:`FLIGHT_PRESETS`):
   flight's gimbal camera on chain ``gimbal`` (the primary gimbal camera, run index 1);
 * ``gimbal-pair``: cam0 static; cam1 the flight's gimbal camera on chain ``gimbal``; cam2 on the same
   chain end, 4 cm beside cam1 (along cam1's x axis), rotated by ~3 deg, a thermal-like 640x480
-  pinhole with a shorter focal length (fx ~ 400 px, wider view) and its own distortion.
+  pinhole with a shorter focal length (fx ~ 400 px, wider view) and its own distortion;
+* ``two-gimbals``: cam0 static; cam1 the flight's gimbal camera on chain ``gimbal`` (the primary
+  chain); cam2 the thermal-like camera on a second gimbal ``gimbal2``: the same 2-joint mechanism
+  with its base 20 cm to the left of the first one's (along -x of s), its camera rotated by a few
+  degrees from where cam1 would sit, so at the mid angles (90, 0) deg it looks ahead like cam1 and
+  overlaps cam0's view. Chain ``gimbal2`` moves on its own
+  (:func:`~dcc_fg.sim.trajectory.chain_motion_variant` of the flight's joint motion,
+  :func:`further_chain_motions`).
 
 Every camera model is scaled by ``scale`` (:func:`scale_camera`), like the flight's two cameras.
 :func:`load_flight_cluster` takes a preset name or a cluster calibration file (``cameras:`` /
@@ -19,7 +26,8 @@ Every camera model is scaled by ``scale`` (:func:`scale_camera`), like the fligh
 
 :func:`simulate_cluster_tracks` is :func:`dcc_fg.sim.trajectory.simulate_tracks` with every further
 camera of a run (:class:`~dcc_fg.data.cameras.RunCamera`, run index >= 2) observed as well, in
-``TrackFrame.extra``.
+``TrackFrame.extra``; a camera on a further chain is placed at that chain's true angles
+(``FlightTruth.extra_theta``).
 
 Frames: ``s`` = cam0; ``T_cs`` maps points of s into camera c; ``e`` the gimbal's end effector.
 Units: metres, radians, pixels.
@@ -35,10 +43,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from dcc_fg.cluster import LEGACY_CHAIN, CameraCluster, CameraMount, ChainSpec
-from dcc_fg.data.cameras import RunCamera, ignored_cameras, run_cameras
+from dcc_fg.data.cameras import RunCamera, ignored_cameras, run_cameras, run_chains
 from dcc_fg.data.vio import TrackFrame
 from dcc_fg.model import GimbalCalibration, load_calibration
-from dcc_fg.sim.trajectory import DEG, FlightTruth, simulate_camera_tracks
+from dcc_fg.sim.trajectory import DEG, FlightTruth, JointMotion, chain_motion_variant, simulate_camera_tracks
 from dcc_fg.sim.trajectory import flight_calibration as two_camera_flight_calibration
 from factors import chain
 from factors.camera import CameraModel
@@ -46,7 +54,7 @@ from factors.camera import CameraModel
 FloatArray = NDArray[np.float64]
 
 #: The flight cluster presets of ``simulate flight --cluster``.
-FLIGHT_PRESETS = ("stereo+gimbal", "gimbal-pair")
+FLIGHT_PRESETS = ("stereo+gimbal", "gimbal-pair", "two-gimbals")
 #: Number of joints of the flight's gimbal (its joint motion, :class:`dcc_fg.sim.trajectory.JointMotion`).
 FLIGHT_JOINTS = 2
 
@@ -58,6 +66,11 @@ STEREO_ANGLES = (1.0 * DEG, -2.0 * DEG, 1.5 * DEG)
 PAIR_CENTRE_D = (0.04, 0.0, 0.0)
 PAIR_ANGLES = (-1.0 * DEG, 2.0 * DEG, -1.5 * DEG)
 #: The thermal-like camera of ``gimbal-pair`` at scale 1 (640x480, fx ~ 400 px).
+#: Second gimbal (``two-gimbals``): its base's displacement from the first gimbal's base, in s (m), and
+#: its camera's rotation relative to the first gimbal's camera mount (rx, ry, rz, rad).
+GIMBAL2_NAME = "gimbal2"
+GIMBAL2_OFFSET_S = (-0.20, 0.0, 0.0)
+GIMBAL2_ANGLES = (1.0 * DEG, -2.0 * DEG, 1.0 * DEG)
 THERMAL = CameraModel((400.0, 401.0, 322.0, 238.0), "radtan", (-0.03, 0.004, 0.0002, -0.0001), (640, 480))
 
 
@@ -91,7 +104,7 @@ def flight_cluster(preset: str, scale: float = 1.0) -> GimbalCalibration:
 
     Its primary chain (``gimbal``: ``tau_s``, ``dh``) and primary gimbal camera (``tau_d``, intrinsics)
     are :func:`~dcc_fg.sim.trajectory.flight_calibration`'s, so ``T_ds(theta)`` is the two-camera
-    flight's to the bit.
+    flight's to the bit. ``two-gimbals`` adds the chain ``gimbal2`` (:data:`GIMBAL2_OFFSET_S`).
     """
     if preset not in FLIGHT_PRESETS:
         raise ValueError(f"unknown flight cluster preset {preset!r} (presets: {', '.join(FLIGHT_PRESETS)})")
@@ -104,19 +117,28 @@ def flight_cluster(preset: str, scale: float = 1.0) -> GimbalCalibration:
         stereo = CameraMount("cam1", T_cs=_rigid(STEREO_ANGLES, STEREO_CENTRE_S), camera=cam_s)
         primary = CameraMount("cam2", LEGACY_CHAIN, tau_d=base.tau_d, camera=cam_d)
         cameras = (static, stereo, primary)
-    else:
+    elif preset == "gimbal-pair":
         primary = CameraMount("cam1", LEGACY_CHAIN, tau_d=base.tau_d, camera=cam_d)
         T_ce = _rigid(PAIR_ANGLES, PAIR_CENTRE_D) @ base.T_de()  # e -> cam2 = (cam1 -> cam2) (e -> cam1)
         second = CameraMount("cam2", LEGACY_CHAIN, tau_d=chain.tau_from_se3(T_ce), camera=scale_camera(THERMAL, scale))
         cameras = (static, primary, second)
+    else:
+        primary = CameraMount("cam1", LEGACY_CHAIN, tau_d=base.tau_d, camera=cam_d)
+        # base2 = base1 moved by the offset o in s: p_b2 = T_b1s (p_s - o)
+        T_b2s = chain.se3_from_tau(base.tau_s) @ _rigid((0.0, 0.0, 0.0), GIMBAL2_OFFSET_S)
+        gimbal2 = ChainSpec(GIMBAL2_NAME, chain.tau_from_se3(T_b2s), base.dh)
+        T_ce = _rigid(GIMBAL2_ANGLES, (0.0, 0.0, 0.0)) @ base.T_de()  # rotated about its optical centre
+        second = CameraMount("cam2", GIMBAL2_NAME, tau_d=chain.tau_from_se3(T_ce), camera=scale_camera(THERMAL, scale))
+        return GimbalCalibration.from_cluster(CameraCluster((static, primary, second), (gimbal, gimbal2)))
     return GimbalCalibration.from_cluster(CameraCluster(cameras, (gimbal,)))
 
 
 def check_flight_cluster(calibration: GimbalCalibration, n_joints: int = FLIGHT_JOINTS) -> tuple[RunCamera, ...]:
     """The further cameras (run index >= 2, :func:`~dcc_fg.data.cameras.run_cameras` in ``dcc`` mode)
     of a cluster the flight simulator can fly: every camera with intrinsics, a primary chain of
-    ``n_joints`` joints (the flight's joint motion), no camera on a second chain with joints (the
-    flight moves one chain). ValueError naming the calibration's source otherwise."""
+    ``n_joints`` joints (the flight's joint motion) and every further chain with joints that carries
+    a camera of ``n_joints`` joints as well (each moves with a variant of that motion,
+    :func:`further_chain_motions`). ValueError naming the calibration's source otherwise."""
     where = calibration.source or "the cluster"
     cluster = calibration.cluster()
     if calibration.n_joints != n_joints:
@@ -129,20 +151,33 @@ def check_flight_cluster(calibration: GimbalCalibration, n_joints: int = FLIGHT_
         raise ValueError(f"{where}: no intrinsics for {', '.join(missing)} (every camera of a flight is rendered)")
     extra = run_cameras(calibration, "dcc")
     left_out = ignored_cameras(calibration, "dcc", extra)
-    if left_out:
-        raise ValueError(
-            f"{where}: {', '.join(left_out)} on a second chain with joints; the flight moves the primary chain "
-            f"only ({cluster.camera(cluster.primary_gimbal_camera).chain!r})"
-        )
+    if left_out:  # dcc uses every camera; kept as a guard should run_cameras change
+        raise ValueError(f"{where}: {', '.join(left_out)} cannot be flown (not usable in a dcc run)")
+    for name in run_chains(calibration, "dcc")[1:]:
+        L = cluster.chain(name).n_joints
+        if L != n_joints:
+            raise ValueError(
+                f"{where}: the second chain {name!r} ({', '.join(cluster.cameras_on(name))}) has {L} joint(s); "
+                f"the flight's gimbal motion drives {n_joints} on every chain"
+            )
     return extra
+
+
+def further_chain_motions(calibration: GimbalCalibration, joints: JointMotion) -> dict[str, JointMotion]:
+    """The joint motion of every further chain a flight of the cluster moves (chain name -> motion):
+    the chains of slots 1, 2, ... of :func:`~dcc_fg.data.cameras.run_chains` in ``dcc`` mode, slot k
+    moving with :func:`~dcc_fg.sim.trajectory.chain_motion_variant` ``(joints, k)`` (its own sinusoids
+    and slews; locked if ``joints`` is). Empty for a cluster with one chain with joints."""
+    further = run_chains(calibration, "dcc")[1:]
+    return {name: chain_motion_variant(joints, k) for k, name in enumerate(further, start=1)}
 
 
 def load_flight_cluster(spec: str | Path, scale: float = 1.0) -> GimbalCalibration:
     """The cluster of ``simulate flight --cluster SPEC``: a preset name (:func:`flight_cluster`) or a
     cluster calibration YAML file (``cameras:`` / ``chains:``, read with
     :func:`~dcc_fg.model.load_calibration`) whose every camera has intrinsics (scaled by ``scale``),
-    whose primary chain has the flight gimbal's 2 joints and which has no second chain with joints
-    (:func:`check_flight_cluster`). The file's geometry is taken as it is: its primary camera should
+    whose primary chain and every further chain with joints have the flight gimbal's 2 joints
+    (:func:`check_flight_cluster`). The file's geometry is taken as it is: its chain cameras should
     look ahead near the flight's mid joint angles (90, 0) deg like the flight's gimbal camera."""
     text = str(spec)
     if text in FLIGHT_PRESETS:
@@ -185,11 +220,14 @@ def simulate_cluster_tracks(
     ``calibration``: the cluster (cam0 and the primary gimbal camera: ``static_camera``,
     ``dynamic_camera``, ``T_ds``); ``cameras``: its further cameras as a run uses them
     (:func:`~dcc_fg.data.cameras.run_cameras`), whose observations are in ``TrackFrame.extra`` in
-    this order; a camera on the gimbal is placed with ``cam.T_cs_at(theta)`` at the frame's joint
-    angles (``theta`` (F, L) rad overrides the truth's). ``T_sI``: IMU -> cam0. One landmark id space:
-    an id is kept while any camera sees the landmark in consecutive frames. Pixel noise N(0,
-    ``pixel_sigma``) per axis, converted with each camera's focal lengths; the further cameras draw
-    from a generator of their own, so cam0's and the gimbal camera's coordinates are those of
+    this order; a camera on the primary chain is placed with ``cam.T_cs_at(theta)`` at the frame's
+    joint angles (``theta`` (F, L) rad overrides the truth's), a camera on a further chain (``slot``
+    >= 1) at that chain's true angles ``truth.extra_theta[cam.chain]`` (the flight must move it:
+    ``simulate_flight(..., extra_joints=further_chain_motions(calibration, joints))``). ``T_sI``: IMU
+    -> cam0. One landmark id space: an id is kept while any camera sees the landmark in consecutive
+    frames. Pixel noise N(0, ``pixel_sigma``) per axis, converted with each camera's focal lengths;
+    the further cameras draw from a generator of their own, so cam0's and the gimbal camera's
+    coordinates are those of
     :func:`~dcc_fg.sim.trajectory.simulate_tracks` for the same ``seed`` (and with ``cameras = ()``
     the whole result is, bit for bit).
     """

@@ -45,6 +45,17 @@ and the primary gimbal camera only: a further camera's truth is that of cam0's i
 (:meth:`GimbalCalibration.to_dict` of the layout), the ``imu:`` section, and ``flight.cluster``:
 ``source`` (preset or file), ``primary`` (the primary gimbal camera) and ``topics`` (camera -> topic).
 
+Further gimbal chains (e.g. ``two-gimbals``: cam2 on chain ``gimbal2``): every further chain with
+joints moves on its own (:func:`~dcc_fg.sim.cluster_flight.further_chain_motions`; the primary
+chain's motion, IMU and truth stay those of the flight without the cluster), and its cameras are
+rendered at that chain's angles at each exposure. Its truth, named with the suffix ``_<chain>``:
+``/ground_truth/joints_<chain>`` (``sensor_msgs/JointState``, radians, at the IMU rate, like
+``/ground_truth/joints``) and ``ground_truth_joints_<chain>.csv`` (``timestamp_ns,theta_1..theta_L``:
+one row per image of the chain's first camera, keyed by its header stamp, the angles at its true
+exposure time, like ``ground_truth_joints.csv``). ``flight.cluster`` then also holds ``chains``:
+chain -> ``camera`` (that first camera), ``joints_topic``, ``joints_file`` and ``gimbal``
+(``moving`` / ``locked``).
+
 Times are the simulation's times plus :data:`START_NS` (bags with stamps near zero confuse tools).
 Images are rendered and written one at a time, in time order with the IMU; an image's record time
 (bag order) is its true exposure time, its header stamp the camera's stamp.
@@ -54,8 +65,8 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from collections.abc import Iterator, Sequence
-from dataclasses import dataclass
+from collections.abc import Iterator, Mapping, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
@@ -72,7 +83,7 @@ from dcc_fg.io.output_set import OutputSet
 from dcc_fg.io.outputs import write_joint_angles_csv, write_text_atomic
 from dcc_fg.io.tum import write_tum
 from dcc_fg.model import GimbalCalibration, load_calibration
-from dcc_fg.sim.cluster_flight import check_flight_cluster, load_flight_cluster, scale_camera
+from dcc_fg.sim.cluster_flight import check_flight_cluster, further_chain_motions, load_flight_cluster, scale_camera
 from dcc_fg.sim.flight_render import WorldRenderer, planes_from_world
 from dcc_fg.sim.timing import CameraTiming
 from dcc_fg.sim.trajectory import (
@@ -80,6 +91,7 @@ from dcc_fg.sim.trajectory import (
     FlightTruth,
     JointMotion,
     World,
+    chain_theta_at,
     default_static_mount,
     flight_calibration,
     simulate_flight,
@@ -95,6 +107,19 @@ STATIC_TOPIC = "/cam0/image_raw"
 DYNAMIC_TOPIC = "/cam1/image_raw"
 POSE_TOPIC = "/ground_truth/pose"
 JOINT_TOPIC = "/ground_truth/joints"
+JOINTS_NAME = "ground_truth_joints.csv"
+
+
+def chain_joint_topic(chain: str) -> str:
+    """Truth topic of a further chain's joint angles: ``/ground_truth/joints_<chain>``."""
+    return f"{JOINT_TOPIC}_{chain}"
+
+
+def chain_joints_name(chain: str) -> str:
+    """Truth file of a further chain's joint angles: ``ground_truth_joints_<chain>.csv``."""
+    return f"ground_truth_joints_{chain}.csv"
+
+
 #: Per-image truth of an unsynchronized flight.
 FRAMES_NAME = "ground_truth_frames.csv"
 
@@ -116,6 +141,7 @@ class FlightBag:
     frames_truth: Path | None = None  # ground_truth_frames.csv (unsynchronized timing only)
     topics: tuple[str, ...] = (STATIC_TOPIC, DYNAMIC_TOPIC)  # image topic per run index
     cluster: GimbalCalibration | None = None  # the true cluster of a --cluster flight (None: two cameras)
+    chain_joints: dict[str, Path] = field(default_factory=dict)  # further chain -> ground_truth_joints_<chain>.csv
 
 
 #: Comment line of ``ground_truth.tum``.
@@ -138,28 +164,32 @@ class CameraFrame:
     """One image of a flight: ``camera`` its run index (0 static, 1 primary gimbal camera, 2.. further
     cameras of a cluster, :mod:`dcc_fg.data.cameras`), its true exposure time and header
     stamp (int64 ns from the start of the simulation, without :data:`START_NS`), and the truth at
-    the exposure: ``T_WI`` (4, 4) body in the world and ``theta`` (L,) joint angles (rad)."""
+    the exposure: ``T_WI`` (4, 4) body in the world, ``theta`` (L,) the primary chain's joint angles
+    and ``chains`` further chain -> (L,) its joint angles (rad; empty for a flight with one gimbal)."""
 
     camera: int
     exposure_ns: int
     stamp_ns: int
     T_WI: FloatArray
     theta: FloatArray
+    chains: dict[str, FloatArray] = field(default_factory=dict)
 
 
 def camera_frames(truth: FlightTruth, timing: CameraTiming, seed: int, extra: Sequence[int] = ()) -> list[CameraFrame]:
     """Both cameras' frames (:meth:`CameraTiming.streams` over the flight, jitter drawn from
     ``seed``) with the truth at their exposure times, in exposure order (static first on ties, then
     by run index). ``extra``: run indices of further cameras triggered with the static camera (its
-    exposure times and header stamps)."""
+    exposure times and header stamps). Every frame carries the further chains' angles too
+    (:func:`~dcc_fg.sim.trajectory.chain_theta_at`)."""
     streams = timing.streams(int(truth.t_ns[-1]), np.random.default_rng([seed, 15]))
     frames = []
     for s in streams:
         T_WI, theta = truth_at(truth, s.exposure_ns)
+        chains = chain_theta_at(truth, s.exposure_ns)
         for camera in (s.camera, *extra) if s.camera == 0 else (s.camera,):
             frames += [
-                CameraFrame(camera, int(e), int(st), T, th)
-                for e, st, T, th in zip(s.exposure_ns, s.stamp_ns, T_WI, theta, strict=True)
+                CameraFrame(camera, int(e), int(st), T, th, {name: a[k] for name, a in chains.items()})
+                for k, (e, st, T, th) in enumerate(zip(s.exposure_ns, s.stamp_ns, T_WI, theta, strict=True))
             ]
     frames.sort(key=lambda f: (f.exposure_ns, f.camera))
     return frames
@@ -176,7 +206,8 @@ def render_frames(
 ) -> Iterator[NDArray[np.uint8]]:
     """The image of every frame, in order: the static camera at ``T_sW = T_sI inv(T_WI)``, the gimbal
     camera at ``T_ds(theta) T_sW``, a further camera ``c`` of ``extra`` (run index ``c.index``) at
-    ``c.T_cs_at(theta) T_sW``, each with the truth at the frame's exposure time. Image noise of the
+    ``c.T_cs_at(theta) T_sW`` (on a further chain, ``c.slot`` >= 1: at that chain's angles
+    ``chains[c.chain]`` of the frame), each with the truth at the frame's exposure time. Image noise of the
     static and gimbal cameras comes from one generator seeded ``seed`` in frame order, so
     synchronized frames get the same images as :func:`~dcc_fg.sim.flight_render.render_flight`
     (further cameras draw from a generator of their own and leave those images unchanged)."""
@@ -190,7 +221,12 @@ def render_frames(
         T_sW = T_sI @ inv_se3(f.T_WI)
         if f.camera in further:
             cam = further[f.camera]
-            yield renderer.render(cam.model, cam.T_cs_at(f.theta) @ T_sW, noise_sigma, rng_extra)
+            theta = f.theta
+            if cam.on_gimbal and cam.slot >= 1:
+                if cam.chain not in f.chains:
+                    raise ValueError(f"{cam.name} is on chain {cam.chain!r}, which the flight does not move")
+                theta = f.chains[cam.chain]
+            yield renderer.render(cam.model, cam.T_cs_at(theta) @ T_sW, noise_sigma, rng_extra)
             continue
         T_cW = T_sW if f.camera == 0 else calibration.T_ds(f.theta) @ T_sW
         yield renderer.render(cams[f.camera], T_cW, noise_sigma, rng)
@@ -206,7 +242,9 @@ def _write_flight_bag(
     topics: Sequence[str] = (STATIC_TOPIC, DYNAMIC_TOPIC),
     frame_ids: Sequence[str] = ("cam0", "cam1"),
 ) -> tuple[tuple[int, ...], float]:
-    """IMU, ground-truth pose and joints at every IMU sample, and the rendered images, in time order.
+    """IMU, ground-truth pose and joints (the primary chain's, then every further chain's of
+    ``truth.extra_theta`` on :func:`chain_joint_topic`) at every IMU sample, and the rendered images,
+    in time order.
 
     Header stamps are ``START_NS`` + the sample time (IMU, truth) or + the frame's header stamp
     (images); an image's record time (its place in the bag) is ``START_NS`` + its true exposure time,
@@ -217,6 +255,7 @@ def _write_flight_bag(
         (images written per camera (by run index), CPU seconds spent rendering them).
     """
     names = joint_names(truth.theta.shape[1])
+    further = [(chain_joint_topic(c), th, joint_names(th.shape[1])) for c, th in truth.extra_theta.items()]
     render_s = 0.0
     counts = [0] * len(topics)
     k = 0
@@ -246,6 +285,8 @@ def _write_flight_bag(
             bag.imu(IMU_TOPIC, stamp, truth.imu.acc[i], truth.imu.gyro[i], "imu0")
             bag.pose(POSE_TOPIC, stamp, truth.T_WI[i], "world")
             bag.joints(JOINT_TOPIC, stamp, truth.theta[i], names)
+            for topic, th, th_names in further:
+                bag.joints(topic, stamp, th[i], th_names)
             flush(int(t), inclusive=True)
         if k != len(frames):
             raise RuntimeError(f"{len(frames) - k} images after the last IMU sample")
@@ -355,6 +396,7 @@ def write_flight(
     force: bool = False,
     timing: CameraTiming | None = None,
     cluster: str | Path | None = None,
+    extra_joints: Mapping[str, JointMotion] | None = None,
 ) -> FlightBag:
     """Simulate, render and write a flight (see the module docstring).
 
@@ -379,7 +421,10 @@ def write_flight(
         cluster: an N-camera cluster instead of the two cameras: a preset of
             :data:`~dcc_fg.sim.cluster_flight.FLIGHT_PRESETS` or a cluster calibration file
             (:func:`~dcc_fg.sim.cluster_flight.load_flight_cluster`; its camera models scaled by
-            ``scale``). Further cameras follow cam0's timing (module docstring).
+            ``scale``). Further cameras follow cam0's timing (module docstring). Every further chain
+            with joints moves with :func:`~dcc_fg.sim.cluster_flight.further_chain_motions`.
+        extra_joints: motions of further chains of ``cluster`` (chain name -> motion, ``joints``'
+            number of joints) replacing those defaults.
     """
     if fmt not in ("ros1", "ros2"):
         raise ValueError(f"format must be ros1 or ros2, got {fmt!r}")
@@ -398,20 +443,24 @@ def write_flight(
     joints = joints or JointMotion()
     cal = scaled_flight_calibration(scale) if cluster is None else load_flight_cluster(cluster, scale)
     extra = () if cluster is None else check_flight_cluster(cal, joints.n_joints)
+    motions = {} if cluster is None else _chain_motions(cal, joints, extra_joints, cluster)
+    if cluster is None and extra_joints:
+        raise ValueError("extra_joints need a cluster with further chains (cluster=...)")
     topics, frame_ids, record = (STATIC_TOPIC, DYNAMIC_TOPIC), ("cam0", "cam1"), None
     if cluster is not None:
-        topics, frame_ids, record = _cluster_topics(cal, extra, cluster)
+        topics, frame_ids, record = _cluster_topics(cal, extra, cluster, motions)
     T_sI = default_static_mount()
     imu = dataclasses.replace(imu or ImuConfig(), T_sI=T_sI)
-    truth = simulate_flight(config, imu, joints, seed=seed)
+    truth = simulate_flight(config, imu, joints, seed=seed, extra_joints=motions)
     imu = sensor_covering(imu, truth.imu)
     renderer = WorldRenderer(planes_from_world(World.around(config)), seed=seed)
     timing = timing or CameraTiming()
     frames = camera_frames(truth, timing, seed, [c.index for c in extra])
     images = render_frames(renderer, frames, cal, T_sI, noise_sigma=noise_sigma, seed=seed + 1, extra=extra)
     names = ("flight.bag" if fmt == "ros1" else "flight", "calibration.yaml", "ground_truth.tum",
-             "ground_truth_joints.csv")  # fmt: skip
+             JOINTS_NAME)  # fmt: skip
     gimbal = [f for f in frames if f.camera == 1]
+    chain_camera = {c: _first_camera_on(extra, c) for c in motions}  # run index of each chain's first camera
     with outputs:
         stage = outputs.path
         counts, render_s = _write_flight_bag(stage / names[0], fmt, truth, frames, images, progress, topics, frame_ids)
@@ -424,6 +473,13 @@ def write_flight(
             np.array([START_NS + f.stamp_ns for f in gimbal], dtype=np.int64),
             np.array([f.theta for f in gimbal]).reshape(len(gimbal), truth.theta.shape[1]),
         )
+        for c, index in chain_camera.items():
+            rows = [f for f in frames if f.camera == index]
+            write_joint_angles_csv(
+                stage / chain_joints_name(c),
+                np.array([START_NS + f.stamp_ns for f in rows], dtype=np.int64),
+                np.array([f.chains[c] for f in rows]).reshape(len(rows), truth.extra_theta[c].shape[1]),
+            )
         if not timing.is_default:
             write_frames_csv(stage / FRAMES_NAME, [f for f in frames if f.camera < 2])
     bag_path, cal_path, gt_path, joints_path = (out / n for n in names)
@@ -441,21 +497,48 @@ def write_flight(
         frames_truth=None if timing.is_default else out / FRAMES_NAME,
         topics=tuple(topics),
         cluster=None if cluster is None else cal,
+        chain_joints={c: out / chain_joints_name(c) for c in motions},
     )
 
 
+def _chain_motions(
+    cal: GimbalCalibration, joints: JointMotion, given: Mapping[str, JointMotion] | None, spec: str | Path
+) -> dict[str, JointMotion]:
+    """The motion of every further chain of a cluster flight: :func:`further_chain_motions`, with the
+    ones ``given`` replacing them (ValueError for a chain the flight does not move or a wrong L)."""
+    motions = further_chain_motions(cal, joints)
+    for name, motion in (given or {}).items():
+        if name not in motions:
+            moved = ", ".join(motions) or "none"
+            raise ValueError(f"{spec}: extra_joints for {name!r}, not a further chain with joints (those: {moved})")
+        L = cal.cluster().chain(name).n_joints
+        if motion.n_joints != L:
+            raise ValueError(f"{spec}: extra_joints[{name!r}] moves {motion.n_joints} joint(s), the chain has {L}")
+        motions[name] = motion
+    return motions
+
+
+def _first_camera_on(extra: Sequence[RunCamera], chain: str) -> int:
+    """Run index of the first camera of ``extra`` on the further chain ``chain``."""
+    return next(c.index for c in extra if c.on_gimbal and c.slot >= 1 and c.chain == chain)
+
+
 def _cluster_topics(
-    cal: GimbalCalibration, extra: Sequence[RunCamera], spec: str | Path
+    cal: GimbalCalibration,
+    extra: Sequence[RunCamera],
+    spec: str | Path,
+    motions: Mapping[str, JointMotion] | None = None,
 ) -> tuple[list[str], list[str], dict[str, Any]]:
     """Image topics and frame ids per run index (cam0, the primary gimbal camera, ``extra``) of a
-    cluster flight, and its ``flight.cluster`` record. ValueError when two cameras share a topic (or
-    use the IMU or truth topic)."""
+    cluster flight, and its ``flight.cluster`` record (with ``chains`` when further chains move:
+    ``motions``). ValueError when two cameras share a topic (or use the IMU or a truth topic)."""
     cluster = cal.cluster()
     primary = cluster.primary_gimbal_camera
     names = ["cam0", primary, *(c.name for c in extra)]
     topics = [cluster.camera(n).rostopic or default_topic(n) for n in names]
     assert [c.index for c in extra] == list(range(2, 2 + len(extra)))
-    taken = (IMU_TOPIC, POSE_TOPIC, JOINT_TOPIC)
+    motions = motions or {}
+    taken = (IMU_TOPIC, POSE_TOPIC, JOINT_TOPIC, *(chain_joint_topic(c) for c in motions))
     if len(set(topics)) != len(topics) or set(topics) & set(taken):
         listed = ", ".join(f"{n}: {t}" for n, t in zip(names, topics, strict=True))
         raise ValueError(
@@ -467,6 +550,16 @@ def _cluster_topics(
         "primary": primary,
         "topics": {n: by_name[n] for n in cluster.camera_names},
     }
+    if motions:
+        record["chains"] = {
+            c: {
+                "camera": names[_first_camera_on(extra, c)],
+                "joints_topic": chain_joint_topic(c),
+                "joints_file": chain_joints_name(c),
+                "gimbal": "locked" if m.sin_amplitude == 0.0 and m.slew_amplitude == 0.0 else "moving",
+            }
+            for c, m in motions.items()
+        }
     return topics, names, record
 
 

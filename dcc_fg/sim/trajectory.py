@@ -24,8 +24,11 @@ API
   surface as (origin, u axis, v axis, extent_u, extent_v) for the renderer;
   :meth:`World.sample_points` draws landmarks uniformly on them. The room is convex and the
   trajectory stays inside it, so nothing occludes a landmark from a camera inside the room.
-* :func:`simulate_flight(config, imu, joints, seed) -> FlightTruth` -- truth at the IMU rate
-  (``t_ns``, ``T_WI`` (N,4,4), ``v_W``, ``acc_bias``, ``gyro_bias``, ``theta`` (N,L)), the noisy
+* :func:`chain_motion_variant` -- the motion of a further gimbal chain (slot k >= 1) of a cluster:
+  the primary motion with its own sinusoids and slews.
+* :func:`simulate_flight(config, imu, joints, seed, extra_joints=...) -> FlightTruth` -- truth at the
+  IMU rate (``t_ns``, ``T_WI`` (N,4,4), ``v_W``, ``acc_bias``, ``gyro_bias``, ``theta`` (N,L), and
+  ``extra_theta`` {chain: (N,L)} of further chains moving on their own), the noisy
   IMU (:class:`~dcc_fg.data.vio.ImuSamples`: white noise + bias random walk from
   :class:`~dcc_fg.data.vio.ImuConfig`, ADIS16448 defaults) and camera frame times
   ``frame_t_ns`` (``camera_rate`` Hz, on IMU sample times).
@@ -37,13 +40,15 @@ API
   new id when it reappears after leaving both views), so ids are shared between the cameras.
 * :func:`simulate_camera_tracks` -- the same with further cameras of an N-camera cluster
   (:class:`~dcc_fg.data.cameras.RunCamera`, observations in ``TrackFrame.extra``); with none it is
-  :func:`simulate_tracks` bit for bit.
+  :func:`simulate_tracks` bit for bit. A camera on a further chain follows that chain's angles.
+* :func:`truth_at` / :func:`chain_theta_at` -- the truth (body pose, primary / further chains' joint
+  angles) at any time within the flight, e.g. a camera's exposure times.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-from dataclasses import dataclass, field
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -217,7 +222,8 @@ class JointMotion:
     Slews move the offset through ``slew_sequence`` (multiples of ``slew_amplitude``), one slew
     every ``slew_period`` seconds (joint l starts ``l * slew_period / (2 L)`` later). The slew
     velocity profile is a raised cosine; its duration is chosen so that the peak rate plus the
-    sinusoid's peak rate equals ``max_rate``.
+    sinusoid's peak rate equals ``max_rate``. Joint l's sinusoid has the phase ``0.5 l + sin_phase``
+    (rad) at t = 0.
     """
 
     mid: tuple[float, ...] = (90.0 * DEG, 0.0)
@@ -228,6 +234,7 @@ class JointMotion:
     slew_period: float = 8.0
     first_slew: float = 4.0
     slew_sequence: tuple[float, ...] = (1.0, -1.0, 0.0)
+    sin_phase: float = 0.0
 
     @property
     def n_joints(self) -> int:
@@ -261,8 +268,9 @@ class JointMotion:
         for j in range(L):
             f = self.sin_frequency[j % len(self.sin_frequency)]
             w = 2 * np.pi * f
-            th[:, j] = self.mid[j] + self.sin_amplitude * np.sin(w * t + 0.5 * j)
-            thd[:, j] = self.sin_amplitude * w * np.cos(w * t + 0.5 * j)
+            phase = 0.5 * j + self.sin_phase
+            th[:, j] = self.mid[j] + self.sin_amplitude * np.sin(w * t + phase)
+            thd[:, j] = self.sin_amplitude * w * np.cos(w * t + phase)
             for t0, T, delta in self._slews(j, min(duration, float(t.max(initial=0.0)) + 1.0)):
                 u = np.clip((t - t0) / T, 0.0, 1.0)
                 th[:, j] += delta * 0.5 * (1.0 - np.cos(np.pi * u))
@@ -273,6 +281,27 @@ class JointMotion:
     def slew_windows(self, duration: float) -> list[tuple[int, float, float]]:
         """(joint, t_start, t_end) of every slew before ``duration`` seconds."""
         return [(j, t0, t0 + T) for j in range(self.n_joints) for t0, T, _ in self._slews(j, duration)]
+
+
+def chain_motion_variant(joints: JointMotion, k: int) -> JointMotion:
+    """The joint motion of the ``k``-th further chain (``k`` >= 1, its slot) of a flight whose primary
+    chain moves with ``joints``: the same mid position, amplitudes and rate limit (a locked gimbal's
+    variant is locked too), but its own sinusoids (frequencies swapped between the joints and lowered
+    by a factor 1 + 0.15 k, phase shifted by 1.9 k rad) and its own slews (the slew sequence mirrored
+    for odd ``k``, the first slew ``(0.5 + 0.1 (k - 1)) slew_period`` later: for ``k`` = 1 and the
+    default timing, in the pauses between the primary's slews), so every chain moves on its own while
+    staying in the primary's range.
+    """
+    if k < 1:
+        raise ValueError(f"further chains are numbered from 1, got {k}")
+    slews = tuple(0.0 - x for x in joints.slew_sequence) if k % 2 else joints.slew_sequence
+    return replace(
+        joints,
+        sin_frequency=tuple(f / (1.0 + 0.15 * k) for f in reversed(joints.sin_frequency)),
+        sin_phase=joints.sin_phase + 1.9 * k,
+        first_slew=joints.first_slew + joints.slew_period * (0.5 + 0.1 * (k - 1)),
+        slew_sequence=slews,
+    )
 
 
 def locked_gimbal(mid: tuple[float, ...] | None = None) -> JointMotion:
@@ -327,7 +356,11 @@ class FlightTruth:
 
     ``t_ns`` (N,) int64 from 0; ``T_WI`` (N,4,4); ``v_W`` (N,3) m/s; ``acc_bias`` / ``gyro_bias``
     (N,3) m/s^2, rad/s; ``theta`` (N,L) rad; ``imu`` the noisy measurements at ``t_ns``;
-    ``frame_t_ns`` camera frame times (a subset of ``t_ns``); ``distance`` metres flown.
+    ``frame_t_ns`` camera frame times (a subset of ``t_ns``); ``distance`` metres flown;
+    ``joints`` the primary chain's motion (``theta``). A flight with further gimbal chains moving on
+    their own (an N-camera cluster, slots 1, 2, ... of :func:`dcc_fg.data.cameras.run_chains`) also
+    holds, per chain name, their joint angles ``extra_theta[chain]`` (N, L_chain) rad at ``t_ns`` and
+    their motions ``extra_joints[chain]``; both are empty for a flight with one gimbal.
     """
 
     t_ns: IntArray
@@ -342,6 +375,16 @@ class FlightTruth:
     joints: JointMotion
     distance: float
     gravity_W: FloatArray = field(default_factory=lambda: np.array([0.0, 0.0, -9.81]))
+    extra_theta: dict[str, FloatArray] = field(default_factory=dict)
+    extra_joints: dict[str, JointMotion] = field(default_factory=dict)
+
+    def chain_theta(self, name: str) -> FloatArray:
+        """Joint angles (N, L) rad at ``t_ns`` of the further chain ``name``; ValueError if the flight
+        does not move it."""
+        if name not in self.extra_theta:
+            moved = ", ".join(self.extra_theta) or "none"
+            raise ValueError(f"the flight does not move chain {name!r} (further chains moved: {moved})")
+        return self.extra_theta[name]
 
     def index_of(self, t_ns: IntArray | int) -> IntArray:
         """Indices of IMU-rate truth samples at the given times (must be sample times)."""
@@ -359,8 +402,13 @@ def simulate_flight(
     initial_acc_bias: FloatArray | None = None,
     initial_gyro_bias: FloatArray | None = None,
     noise: bool = True,
+    extra_joints: Mapping[str, JointMotion] | None = None,
 ) -> FlightTruth:
     """Sample the trajectory at the IMU rate and synthesize the IMU.
+
+    ``joints`` moves the primary chain (``theta``); ``extra_joints`` (chain name -> motion) the
+    further chains of a cluster, each on its own (``extra_theta``; e.g. :func:`chain_motion_variant`).
+    They draw nothing from the generator: every other field is the same with or without them.
 
     ``acc = R_WI^T (a_W - g_W) + b_a + n_a``, ``gyro = omega_I + b_g + n_g`` with discrete white
     noise of standard deviation ``density / sqrt(dt)`` and biases following a random walk of
@@ -392,6 +440,8 @@ def simulate_flight(
     theta, _ = joints.evaluate(t, config.duration)
     step = int(round(imu.rate_hz / config.camera_rate))
     frame_t_ns = t_ns[::step]
+    motions = dict(extra_joints or {})
+    extra_theta = {name: m.evaluate(t, config.duration)[0] for name, m in motions.items()}
     return FlightTruth(
         t_ns=t_ns,
         T_WI=st.T_WI(),
@@ -405,6 +455,8 @@ def simulate_flight(
         joints=joints,
         distance=traj.length(),
         gravity_W=g_W,
+        extra_theta=extra_theta,
+        extra_joints=motions,
     )
 
 
@@ -510,8 +562,11 @@ def simulate_camera_tracks(
 ) -> list[TrackFrame]:
     """:func:`simulate_tracks` with the further cameras ``extra`` of an N-camera run (run index >= 2).
 
-    Camera c sees ``p_c = T_cs T_sI T_IW p_W`` with ``T_cs = c.T_cs_at(theta)`` (the primary chain's
-    joint angles at the frame for a camera on the gimbal, constant for a rigid one); its observations
+    Camera c sees ``p_c = T_cs T_sI T_IW p_W`` with ``T_cs = c.T_cs_at(theta)``: constant for a rigid
+    camera; for a camera on the primary chain (``slot`` 0) at the primary joint angles of the frame
+    (``theta`` if given, else the truth's); for a camera on a further chain (``slot`` >= 1) at that
+    chain's true angles ``truth.extra_theta[c.chain]`` (ValueError if the flight does not move it,
+    whatever ``theta``). Its observations
     go into ``TrackFrame.extra`` (one :class:`~dcc_fg.data.vio.CameraTracks` per camera, in the order
     of ``extra``). A landmark keeps its id while any camera sees it in consecutive frames. The static
     and gimbal cameras draw their noise as :func:`simulate_tracks` does (generator ``seed``), the
@@ -526,6 +581,10 @@ def simulate_camera_tracks(
     rng_extra = np.random.default_rng([seed, 17]) if extra else rng
     idx = truth.index_of(truth.frame_t_ns)
     thetas = truth.theta[idx] if theta is None else np.asarray(theta, float).reshape(idx.size, -1)
+    chain_thetas = [
+        truth.chain_theta(cam.chain)[idx] if cam.on_gimbal and cam.slot >= 1 and cam.chain is not None else None
+        for cam in extra
+    ]
     P_h = np.hstack([landmarks_W, np.ones((landmarks_W.shape[0], 1))])
     tracks = TrackIds(landmarks_W.shape[0])
     frames = []
@@ -541,8 +600,8 @@ def simulate_camera_tracks(
             vis_d, _ = visible_points(cam_d, p_d, max_range, margin_px)
         seen = vis_s | vis_d
         p_extra, vis_extra = [], []
-        for cam in extra:
-            p_c = P_h @ (cam.T_cs_at(thetas[f]) @ T_sW)[:3].T
+        for cam, th_c in zip(extra, chain_thetas, strict=True):
+            p_c = P_h @ (cam.T_cs_at(thetas[f] if th_c is None else th_c[f]) @ T_sW)[:3].T
             vis_c, _ = visible_points(cam.model, p_c, max_range, margin_px)
             p_extra.append(p_c)
             vis_extra.append(vis_c)
@@ -587,3 +646,24 @@ def truth_at(truth: FlightTruth, t_ns: IntArray) -> tuple[FloatArray, FloatArray
         T_WI[off] = BodyTrajectory(truth.config).evaluate(t).T_WI()
         theta[off] = truth.joints.evaluate(t, truth.config.duration)[0]
     return T_WI, theta
+
+
+def chain_theta_at(truth: FlightTruth, t_ns: IntArray) -> dict[str, FloatArray]:
+    """Joint angles (N, L) rad of every further chain of ``truth`` (``extra_theta``) at times ``t_ns``
+    (N,) ns from the start of the flight, like :func:`truth_at` for the primary chain: the stored
+    samples at IMU sample times (bit-identical), the chain's analytic motion between them. An empty
+    dict for a flight with one gimbal."""
+    t_ns = np.atleast_1d(np.asarray(t_ns, dtype=np.int64))
+    if t_ns.size and (t_ns.min() < truth.t_ns[0] or t_ns.max() > truth.t_ns[-1]):
+        raise ValueError("times outside the flight")
+    idx = np.minimum(np.searchsorted(truth.t_ns, t_ns), truth.t_ns.size - 1)
+    on = truth.t_ns[idx] == t_ns
+    off = ~on
+    out = {}
+    for name, samples in truth.extra_theta.items():
+        theta = np.empty((t_ns.size, samples.shape[1]))
+        theta[on] = samples[idx[on]]
+        if np.any(off):
+            theta[off] = truth.extra_joints[name].evaluate(t_ns[off] / NS, truth.config.duration)[0]
+        out[name] = theta
+    return out
