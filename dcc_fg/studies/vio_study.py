@@ -21,10 +21,12 @@ import numpy as np
 
 from dcc_fg.data.cameras import run_cameras
 from dcc_fg.data.vio import ImuConfig
-from dcc_fg.sim.cluster_flight import flight_cluster, simulate_cluster_tracks
+from dcc_fg.model import GimbalCalibration
+from dcc_fg.sim.cluster_flight import flight_cluster, further_chain_motions, simulate_cluster_tracks
 from dcc_fg.sim.trajectory import (
     FlightConfig,
     FlightTruth,
+    JointMotion,
     World,
     default_static_mount,
     flight_calibration,
@@ -48,13 +50,18 @@ class StudyConfig:
     theta_init_error: float = 0.03
 
 
-def _study_inputs(cfg: StudyConfig) -> tuple[FlightTruth, np.ndarray, ImuConfig]:
+def _study_inputs(
+    cfg: StudyConfig, calibration: GimbalCalibration | None = None
+) -> tuple[FlightTruth, np.ndarray, ImuConfig]:
+    """The flight, its landmarks and IMU; with an N-camera ``calibration`` its further chains move too
+    (:func:`~dcc_fg.sim.cluster_flight.further_chain_motions`)."""
     T_sI = default_static_mount()
     imu_cfg = ImuConfig(T_sI=T_sI)
     if cfg.pattern not in ("short", "paper"):
         raise ValueError(f"pattern '{cfg.pattern}' is not one of short, paper")
     flight = FlightConfig.short(cfg.duration) if cfg.pattern == "short" else FlightConfig(duration=cfg.duration)
-    truth = simulate_flight(flight, imu_cfg, seed=cfg.seed)
+    extra = None if calibration is None else further_chain_motions(calibration, JointMotion())
+    truth = simulate_flight(flight, imu_cfg, seed=cfg.seed, extra_joints=extra)
     pts = World.around(truth.config).sample_points(cfg.density, np.random.default_rng(cfg.seed + 100))
     return truth, pts, imu_cfg
 
@@ -71,8 +78,8 @@ def run_mode(
     ``preset``: fly an N-camera cluster (module docstring) with the further cameras ``cameras`` (names;
     None: every camera the mode can use); None: today's static + gimbal camera pair."""
     cfg = cfg or StudyConfig()
-    truth, pts, imu_cfg = _study_inputs(cfg)
     cal = flight_calibration() if preset is None else flight_cluster(preset)
+    truth, pts, imu_cfg = _study_inputs(cfg, None if preset is None else cal)
     focal = float(cal.static_camera.intrinsics[0]) if cal.static_camera is not None else 460.0
     mid = np.asarray(truth.joints.mid, float)
     theta = np.tile(mid, (truth.frame_t_ns.size, 1)) if mode == "scc" else None
@@ -99,6 +106,12 @@ def run_mode(
     gt = GroundTruth(truth.t_ns, truth.T_WI, truth.t_ns, joint_truth)
     ev = evaluate_trajectory(res.timestamps_ns, res.T_WI, gt, "sim3" if mode == "mono" else "se3")
     ev["joint_rmse_rad"] = joint_rmse(res.timestamps_ns, res.theta, gt) if mode == "dcc" else None
+    ev["chain_joint_rmse_rad"] = {
+        name: joint_rmse(
+            res.timestamps_ns, theta, GroundTruth(truth.t_ns, truth.T_WI, truth.t_ns, truth.extra_theta[name])
+        )
+        for name, theta in res.chain_theta.items()
+    }
     ev["real_time_factor"] = res.stats["real_time_factor"]
     ev["processing_time_s"] = res.stats["processing_time_s"]
     ev["failed_updates"] = res.stats["failed_updates"]
