@@ -535,18 +535,22 @@ def test_bad_camchain_clusters(tmp_path: Path) -> None:
 # ------------------------------------------------------------------------ two-camera-only code paths
 
 
-def test_vio_refuses_an_n_camera_cluster(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    """``dcc-fg vio`` with a file whose cam1 is a static stereo partner: refused before any work."""
+def test_vio_checks_an_n_camera_cluster_before_any_work(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """``dcc-fg vio`` takes a file whose cam1 is a static stereo partner (N-camera VIO,
+    tests/test_vio_cluster.py); a camera the file does not have is refused by name before the bag is read."""
     d = stereo_plus_gimbal()
     d["imu"] = ImuConfig().to_dict()
     cal_path = _write(tmp_path / "cluster.yaml", d)
     bag = tmp_path / "flight.bag"
     bag.write_bytes(b"")
     out = tmp_path / "run"
-    assert main(["vio", str(bag), "--calibration", str(cal_path), "--out", str(out), "-q"]) == 2
+    args = ["vio", str(bag), "--calibration", str(cal_path), "--out", str(out), "-q"]
+    assert main([*args, "--cameras", "cam7"]) == 2
     err = capsys.readouterr().err
-    assert f"{cal_path}: a 3-camera cluster (cam0 (static), cam1 (static), cam2 (chain gimbal))" in err, err
-    assert "N-camera VIO is not supported yet" in err and "here cam1 is static" in err
+    assert f"{cal_path}: no camera cam7 in the cluster (cameras: cam0, cam1, cam2)" in err, err
+    assert main(args) == 2  # the calibration is fine: the empty bag is what is refused
+    err = capsys.readouterr().err
+    assert str(bag) in err and "cluster" not in err, err
     assert not out.exists()
 
 
