@@ -15,15 +15,21 @@ locked at its mid position for ``scc``. Rendering is not timed. Then, in this pr
   with the offsets held at 0 (``estimate_time_offsets=False``, the graph without exposure-time camera
   poses); the ratios of wall time and accuracy of the two (``--no-offsets-baseline`` skips them).
 
+* with ``--cluster PRESET`` (``stereo+gimbal``, ``gimbal-pair``, ``two-gimbals``): the same flight rendered
+  with that N-camera cluster, run in ``dcc`` with every camera and with cam0 + the gimbal camera only
+  (:mod:`benchmarks.bench_vio_cluster`): its real-time factor next to the two-camera one.
+
 Machines here are shared and noisy: compare the ratios, not the absolute times.
 
-Usage: ``python benchmarks/bench_vio.py [--duration 60] [--seed 0] [--keep DIR] [--no-baseline]``
+Usage: ``python benchmarks/bench_vio.py [--duration 60] [--seed 0] [--keep DIR] [--no-baseline]
+[--cluster stereo+gimbal]``
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -36,6 +42,9 @@ from dcc_fg.sim.trajectory import FlightConfig, locked_gimbal, simulate_flight
 from dcc_fg.vio.backend import VioOptions
 from dcc_fg.vio.evaluate import evaluate_trajectory, joint_rmse, load_ground_truth
 from dcc_fg.vio.pipeline import PipelineOptions, run_vio_bag
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import bench_vio_cluster as cluster_bench  # noqa: E402
 
 
 def _flight_config(duration: float) -> FlightConfig:
@@ -125,6 +134,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     p.add_argument("--keep", help="write the flights into this folder (default: a temporary one)")
     p.add_argument("--no-baseline", action="store_true", help="skip the inline front-end runs")
     p.add_argument("--no-offsets-baseline", action="store_true", help="skip the runs with the time offsets held")
+    p.add_argument("--cluster", help="also run this N-camera cluster preset's flight (e.g. stereo+gimbal)")
     a = p.parse_args(argv)
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(a.keep or tmp)
@@ -166,6 +176,13 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                     f"{mode}: offsets estimated / held at 0: wall time {t_ratio:.2f}, translation RMSE {e_ratio:.2f} "
                     f"(estimates {est['time_offsets_ms'][0]:.2f}, {est['time_offsets_ms'][1]:.2f} ms; truth 0)"
                 )
+        if a.cluster:
+            bag, calibration = cluster_bench.render(root / "cluster", a.cluster, cfg, a.seed)
+            every, two = cluster_bench.run(bag, calibration, None), cluster_bench.run(bag, calibration, ())
+            out["cluster"] = {"preset": a.cluster, "all_cameras": every, "two_cameras": two}
+            print(f"{a.cluster} (front-end process):")
+            print(cluster_bench.line(every))
+            print(cluster_bench.line(two))
         worst = max(r["real_time_factor"] for r in out["runs"] if r["parallel"])
         print(
             f"largest real-time factor (front-end process): {worst:.3f} "
