@@ -7,11 +7,18 @@ import json
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 
 from benchmarks.bench_vio_cluster import main
 from dcc_fg.cli import main as cli
+from dcc_fg.data.cameras import run_cameras
+from dcc_fg.io.outputs import read_joint_angles_csv
+from dcc_fg.io.tum import read_tum
+from dcc_fg.model import load_calibration
 from dcc_fg.vio.evaluate import evaluate_folder
+from dcc_fg.viz import rerun_log
+from tests.test_rerun import load_rrd, pose, scalars
 
 pytestmark = pytest.mark.slow  # renders three 12 s flights and runs each twice (~2 min)
 
@@ -62,3 +69,30 @@ def test_vio_command_on_a_cluster_bag(bench: tuple[dict[str, Any], Path], tmp_pa
     ev_two = evaluate_folder(tmp_path / "two", folder / "flight")
     assert max(ev_all["joint_rmse_rad"]) <= 1e-2
     assert ev_all["normalized_translation_rmse_percent"] <= ev_two["normalized_translation_rmse_percent"]
+
+
+def test_rerun_recording_shows_every_camera(bench: tuple[dict[str, Any], Path], tmp_path: Path) -> None:
+    """``--rerun`` on the two-gimbal bag: the second gimbal's camera cam2 has its tracks per frame, its image
+    at every keyframe, its pose per keyframe at gimbal2's estimated angles (T_sc = T_cs(theta)^-1) and
+    gimbal2's joint angles over time, equal to joint_angles_gimbal2.csv."""
+    _, keep = bench
+    folder = keep / "two-gimbals"
+    out, rrd = tmp_path / "run", tmp_path / "run.rrd"
+    args = ["vio", str(folder / "flight"), "--calibration", str(folder / "calibration.yaml"), "--out", str(out)]
+    assert cli([*args, "--quiet", "--rerun", str(rrd)]) == 0
+    rec = load_rrd(rrd)
+    t_kf, T_kf = read_tum(out / "trajectory.tum")
+    t2, theta2 = read_joint_angles_csv(out / "joint_angles_gimbal2.csv")
+    np.testing.assert_array_equal(t2, t_kf)
+    for j in range(2):
+        np.testing.assert_allclose(scalars(rec, f"/joints/gimbal2/theta_{j + 1}"), theta2[:, j], atol=1e-9)
+    poses = rec["/" + rerun_log.further_camera("cam2")]["rows"]
+    (cam2,) = run_cameras(load_calibration(folder / "calibration.yaml"), "dcc")
+    assert len(poses) == len(t_kf)
+    for k in (0, len(t_kf) // 2, len(t_kf) - 1):
+        np.testing.assert_allclose(pose(poses[k]), np.linalg.inv(cam2.T_cs_at(theta2[k])), atol=1e-5)
+    image = "/" + rerun_log.further_image("cam2")
+    blobs = [r for r in rec[image]["rows"] if r.get("EncodedImage:blob") is not None]
+    assert [r["keyframe"] for r in blobs] == list(range(len(t_kf)))
+    tracks = rec[image + "/tracks"]["rows"]
+    assert len(tracks) > len(t_kf) and sum(len(r["Points2D:positions"] or []) for r in tracks) > 1000

@@ -26,6 +26,7 @@ from dcc_fg.calibrate import CalibrationOptions, CalibrationResult, calibrate
 from dcc_fg.calibration_health import calibration_health
 from dcc_fg.commands import calibrate_incremental, common
 from dcc_fg.commands.calibrate_cluster import add_cluster_flags, calibrate_cluster_command, wants_cluster
+from dcc_fg.commands.incremental_settings import IncrementalSettings
 from dcc_fg.data import CalibrationDataset, common_corners
 from dcc_fg.degeneracy import NOMINALS
 from dcc_fg.global_fit import calibrate_global
@@ -148,6 +149,7 @@ class CalibrateConfig:
     reader: ReaderOptions = field(default_factory=ReaderOptions)
     solver: CalibrationOptions = field(default_factory=CalibrationOptions)
     output: OutputOptions = field(default_factory=OutputOptions)
+    incremental: IncrementalSettings = field(default_factory=IncrementalSettings)
 
 
 @dataclass

@@ -9,9 +9,9 @@ time, the RMS residual (px), the predicted worst and mean 1-sigma of ``T_ds`` ov
 Sources (DATA as for ``calibrate``):
 
 * an image folder or detection folder (``cam0/``, ``cam1/``) is **polled** every ``--poll-seconds``
-  for new files; a poll that finds a file added or changed re-reads the folder (the images are
-  decoded again, but detected only once: detections are kept by image content), pairs the frames as
-  the normal reader does and feeds the pairs not fed before in time order. A file that cannot be read
+  for new files; a poll that finds a file added or changed re-reads the folder listing (an image file
+  already read, same path, size and modification time, is neither decoded nor detected again), pairs
+  the frames as the normal reader does and feeds the pairs not fed before in time order. A file that cannot be read
   yet (still being written) makes the poll wait for the next one: write each file under a temporary
   name and rename it into place. The run
   stops after ``--idle-timeout`` seconds without a new snapshot, or at Ctrl-C;
@@ -27,10 +27,9 @@ from __future__ import annotations
 
 import argparse
 import hashlib
-import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -39,6 +38,7 @@ from numpy.typing import NDArray
 from dcc_fg.calibrate import CalibrationResult
 from dcc_fg.commands import calibrate as calibrate_cmd
 from dcc_fg.commands import common
+from dcc_fg.commands.incremental_settings import IncrementalSettings
 from dcc_fg.data import CalibrationDataset, Observation, Snapshot, common_corners
 from dcc_fg.detection import detect_target
 from dcc_fg.incremental import IncrementalCalibration, IncrementalOptions, Update
@@ -46,32 +46,12 @@ from dcc_fg.io.layout import detect_layout
 from dcc_fg.io.output_set import DeferredInterrupt, OutputSet
 from dcc_fg.model import GimbalCalibration
 from dcc_fg.planning.range_spec import parse_range, parse_tolerance
-from dcc_fg.sources.dataset import load_dataset
+from dcc_fg.sources.dataset import FileDetections, load_dataset
 from dcc_fg.targets import TargetGeometry
 from dcc_fg.util.config import ConfigError
 from dcc_fg.util.provenance import run_record
 
 FOLDER_LAYOUTS = ("image_folder", "detection_folder")
-
-
-@dataclass(frozen=True)
-class IncrementalSettings:
-    """The ``--incremental`` options: ``poll_seconds`` between polls of a folder (s, > 0),
-    ``idle_timeout`` without a new snapshot before the run stops (s, >= 0), ``tolerance`` of the
-    worst-case ``T_ds`` 1-sigma (``ROT,TRANS`` text as ``dcc-fg plan --tolerance``), ``range`` the
-    operating range (``LO:HI,...`` degrees per joint; None: the data's range plus a margin)."""
-
-    poll_seconds: float = 1.0
-    idle_timeout: float = 30.0
-    tolerance: str = "1mrad,1mm"
-    range: str | None = None
-
-    def __post_init__(self) -> None:
-        if not (math.isfinite(self.poll_seconds) and self.poll_seconds > 0):
-            raise ValueError(f"--poll-seconds must be a positive number of seconds, got {self.poll_seconds}")
-        if not (math.isfinite(self.idle_timeout) and self.idle_timeout >= 0):
-            raise ValueError(f"--idle-timeout must be a number of seconds >= 0, got {self.idle_timeout}")
-        parse_tolerance(self.tolerance)  # ValueError naming the problem
 
 
 class SnapshotSource:
@@ -92,6 +72,7 @@ class SnapshotSource:
         self.report: dict[str, Any] = {}
         self._seen: set[int] = set()
         self._detections: dict[bytes, Observation] = {}
+        self._file_detections: FileDetections = {}  # image folders: by (path, size, mtime)
         self._listing: tuple[tuple[str, int, int], ...] | None = None
         # a folder that does not exist yet or is still empty is polled; a bag is read once
         self.is_folder = not self.path.exists() or (self.path.is_dir() and not (self.path / "metadata.yaml").exists())
@@ -139,6 +120,7 @@ class SnapshotSource:
                 progress=False,
                 report=report,
                 jobs=1 if self.is_folder else max(self.reader.jobs, 1),
+                file_cache=self._file_detections if self.is_folder else None,
             )
         except (ValueError, OSError) as exc:
             if not self.is_folder:
@@ -259,23 +241,24 @@ def add_incremental_flags(c: argparse.ArgumentParser) -> None:
                    "residual, the predicted worst / mean T_ds 1-sigma over the operating range and the next suggested "
                    "joint angles, or DONE once within --tolerance; stops after --idle-timeout s without new data or at "
                    "Ctrl-C, then writes the calibration as without --incremental (encoderless, bundle)")  # fmt: skip
-    g.add_argument("--poll-seconds", type=float, default=1.0, metavar="S",
-                   help="--incremental: seconds between polls of a folder (default 1)")  # fmt: skip
-    g.add_argument("--idle-timeout", type=float, default=30.0, metavar="S",
-                   help="--incremental: stop after S seconds without a new snapshot (default 30)")  # fmt: skip
-    g.add_argument("--tolerance", default="1mrad,1mm", metavar="ROT,TRANS", help="--incremental: largest acceptable "
-                   "worst-case 1-sigma of T_ds over the range, rotation (urad|mrad|rad|deg) and translation "
-                   "(um|mm|cm|m), default 1mrad,1mm")  # fmt: skip
-    g.add_argument("--range", metavar="LO:HI,...", help="--incremental: operating range, degrees per joint "
-                   "(the calibration's joint-angle convention); default: the data's range plus a margin")  # fmt: skip
+    opt = common.add_option
+    opt(g, "--poll-seconds", "incremental.poll_seconds", type=float, metavar="S",
+        help="--incremental: seconds between polls of a folder (default 1)")  # fmt: skip
+    opt(g, "--idle-timeout", "incremental.idle_timeout", type=float, metavar="S",
+        help="--incremental: stop after S seconds without a new snapshot (default 30)")  # fmt: skip
+    opt(g, "--tolerance", "incremental.tolerance", metavar="ROT,TRANS", help="--incremental: largest acceptable "
+        "worst-case 1-sigma of T_ds over the range, rotation (urad|mrad|rad|deg) and translation (um|mm|cm|m), "
+        "default 1mrad,1mm")  # fmt: skip
+    opt(g, "--range", "incremental.range", metavar="LO:HI,...", help="--incremental: operating range, degrees per "
+        "joint (the calibration's joint-angle convention); default: the data's range plus a margin")  # fmt: skip
 
 
 def run_incremental_command(args: argparse.Namespace) -> int:
     """The ``--incremental`` branch of ``calibrate_command``."""
     if getattr(args, "rerun", None) or getattr(args, "rerun_spawn", False):
         raise ValueError("--incremental does not record for Rerun; run without --incremental for --rerun")
-    settings = IncrementalSettings(args.poll_seconds, args.idle_timeout, args.tolerance, args.range)
     config = common.effective_config(args, calibrate_cmd.CalibrateConfig, "calibrate")
+    settings = config.incremental
     inputs = calibrate_cmd.CalibrationInputs(args.data, camchain=args.camchain, target=args.target, gimbal=args.gimbal)
     run_incremental(inputs, Path(args.out), config, settings, args.quiet, args.config)
     return 0

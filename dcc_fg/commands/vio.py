@@ -348,7 +348,7 @@ def run_vio(
     primary = cal.cluster().camera(cal.cluster().primary_gimbal_camera)
     dynamic_topic = config.topics.dynamic or primary.rostopic or default_topic(primary.name)
     topics = BagTopics(config.topics.imu, config.topics.static, None if mono else dynamic_topic)
-    run_cameras(cal, options.mode, options.theta_fixed, config.run.cameras)  # refuse bad names before the work
+    further = run_cameras(cal, options.mode, options.theta_fixed, config.run.cameras)  # bad names: before the work
     pipeline = PipelineOptions(
         reject_dynamic=config.run.dynamic_rejection,
         fit_initial_joints=config.run.fit_initial_joints,
@@ -360,7 +360,9 @@ def run_vio(
     )
     with outputs:
         bar = ProgressBar(progress)
-        recording = vio_recording(rerun or RerunOptions(), cal, imu.T_sI, options.mode, bag, rerun_ground_truth, topics)
+        recording = vio_recording(
+            rerun or RerunOptions(), cal, imu.T_sI, options.mode, bag, rerun_ground_truth, topics, further
+        )
         with recording as recorder:
             try:
                 result, run = run_vio_bag(

@@ -28,7 +28,7 @@ import numpy as np
 from numpy.typing import NDArray
 from tqdm import tqdm
 
-from dcc_fg.data import CalibrationDataset, Snapshot
+from dcc_fg.data import CalibrationDataset, Observation, Snapshot
 from dcc_fg.detection import detect_target
 from dcc_fg.io.bags import BagImagePairs, BagTopicImages
 from dcc_fg.io.camchain import CamchainEntry, load_camchain
@@ -72,6 +72,35 @@ def _size(entry: CamchainEntry, cam: str) -> CameraSize:
     return cam, (int(w), int(h))
 
 
+#: Detections of image files by (path, size in bytes, modification time in ns): a file whose key is
+#: known is neither read nor detected again (:func:`load_dataset` ``file_cache``).
+FileDetections = dict[tuple[str, int, int], Observation]
+
+
+def _file_key(path: Path) -> tuple[str, int, int]:
+    st = path.stat()
+    return str(path), int(st.st_size), int(st.st_mtime_ns)
+
+
+def _detect_folder_cached(
+    folder: ImageFolder, sizes: tuple[CameraSize, CameraSize], target: TargetGeometry, detector: Detector,
+    cache: FileDetections,
+) -> list[Snapshot]:  # fmt: skip
+    """Every pair of an image folder, each file read and detected only when ``cache`` does not hold it."""
+    snapshots = []
+    for ref in folder.references():
+        obs = []
+        for path, size in ((ref.static, sizes[0]), (ref.dynamic, sizes[1])):
+            key = _file_key(path)
+            if key not in cache:
+                image = read_image(path)
+                check_resolution(image, size, str(path))
+                cache[key] = detector(image, target)
+            obs.append(cache[key])
+        snapshots.append(Snapshot(ref.timestamp_ns, obs[0], obs[1], ref.joints))
+    return snapshots
+
+
 def _detect_frames(
     frames: Iterable[FramePair],
     total: int,
@@ -82,10 +111,14 @@ def _detect_frames(
     progress: bool,
     desc: str,
     jobs: int = 1,
+    file_cache: FileDetections | None = None,
 ) -> list[Snapshot]:
-    """Detect the target in every pair (read here, detected on ``jobs`` processes), in input order."""
+    """Detect the target in every pair (read here, detected on ``jobs`` processes), in input order; an
+    image folder with ``file_cache``: in this process, each file only once (:data:`FileDetections`)."""
     meta: deque[tuple[int, NDArray[np.float64] | None]] = deque()  # stamp and joints of the pairs in flight
     sizes = (_size(entries[0], names[0]), _size(entries[1], names[1]))
+    if file_cache is not None and isinstance(frames, ImageFolder):
+        return _detect_folder_cached(frames, sizes, target, detector, file_cache)
 
     def images() -> Iterator[tuple[NDArray[np.generic], NDArray[np.generic]]]:
         for fr in frames:
@@ -232,6 +265,7 @@ def load_dataset(
     progress: bool = True,
     report: dict[str, object] | None = None,
     jobs: int = 1,
+    file_cache: FileDetections | None = None,
 ) -> CalibrationDataset:
     """Read a bag, image folder or detection folder into a calibration dataset.
 
@@ -254,6 +288,9 @@ def load_dataset(
         progress: show a tqdm progress bar over the image pairs (on stderr).
         jobs: processes detecting the target (:mod:`dcc_fg.sources.parallel_detection`; the same
             corners in the same order for any value); 1: this process only.
+        file_cache: image folders: detections by file (path, size, modification time), filled and
+            used (this process): a file already in it is neither read nor detected again, e.g. when a
+            growing folder is read again and again (``calibrate --incremental``).
         report: if given, filled with counts for a summary: ``layout``, ``pairs`` (image pairs
             after timestamp pairing), ``unpaired_static`` / ``unpaired_dynamic`` (frame counts
             without a partner), ``detected_static`` / ``detected_dynamic`` (pairs where the
@@ -289,7 +326,7 @@ def load_dataset(
         detector = detector or detect_target
         desc = f"detect {path.name}"
         snapshots = _detect_frames(
-            frames, len(frames), geometry, cams.entries, cams.names, detector, progress, desc, jobs
+            frames, len(frames), geometry, cams.entries, cams.names, detector, progress, desc, jobs, file_cache
         )
     kept = _keep(snapshots, min_common_points, where, geometry)
     if report is not None:

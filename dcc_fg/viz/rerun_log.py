@@ -58,6 +58,7 @@ from numpy.typing import NDArray
 
 from dcc_fg.calibrate import CalibrationResult
 from dcc_fg.data import CalibrationDataset
+from dcc_fg.data.cameras import RunCamera
 from dcc_fg.model import GimbalCalibration
 from dcc_fg.vio.backend import VioResult
 from dcc_fg.vio.evaluate import GroundTruth
@@ -70,6 +71,7 @@ from dcc_fg.viz.vio_scene import (
     CameraTracks,
     find_ground_truth,
     frame_tracks,
+    further_tracks,
     segment_slices,
     truth_in_estimate_frame,
     window_landmarks,
@@ -101,6 +103,21 @@ VIO_IMAGE_CHOICES = ("keyframes", "all", "none")
 STATIC_IMAGE = "world/body/static_camera/image"
 GIMBAL_IMAGE = "world/body/static_camera/gimbal_camera/image"
 STATIC_TRACKS, GIMBAL_TRACKS = f"{STATIC_IMAGE}/tracks", f"{GIMBAL_IMAGE}/tracks"
+#: Pairing tolerance (ns) when reading a further camera's image back by the static image's stamp: the
+#: cameras of a cluster are triggered together (their stamps agree within a few ms).
+FURTHER_IMAGE_TOLERANCE_NS = 10_000_000
+
+
+def further_camera(name: str) -> str:
+    """Entity of further camera ``name`` (its pose relative to the static camera, per keyframe)."""
+    return f"world/body/static_camera/{name}"
+
+
+def further_image(name: str) -> str:
+    """Entity of further camera ``name``'s image (pinhole, tracks and image)."""
+    return f"{further_camera(name)}/image"
+
+
 LANDMARKS = "world/landmarks"
 #: Drawn size (radius, UI points: the same on screen at any zoom) of tracked features and landmarks.
 TRACK_RADIUS_UI, LANDMARK_RADIUS_UI = 3.0, 2.0
@@ -389,14 +406,15 @@ def record_calibration(
 # ---------------------------------------------------------------------------------------------- VIO
 
 
-def vio_blueprint(gimbal: bool = True) -> Any:
+def vio_blueprint(gimbal: bool = True, further: Sequence[str] = ()) -> Any:
     """Layout: the 3D scene with the trajectory and the landmarks, each camera's tracks (``gimbal``: the
-    gimbal camera's too), the joint angles and the motion over time; the ``time`` timeline selected and
-    following the newest data (a finished recording opens at its last frame, the whole trajectory shown;
-    a streamed one follows the run)."""
+    gimbal camera's too; ``further``: the further cameras of an N-camera run, by name), the joint angles
+    and the motion over time; the ``time`` timeline selected and following the newest data (a finished
+    recording opens at its last frame, the whole trajectory shown; a streamed one follows the run)."""
     cameras = [rrb.Spatial2DView(origin=STATIC_IMAGE, name="static camera tracks")]
     if gimbal:
         cameras.append(rrb.Spatial2DView(origin=GIMBAL_IMAGE, name="gimbal camera tracks"))
+    cameras += [rrb.Spatial2DView(origin=further_image(name), name=f"{name} tracks") for name in further]
     return rrb.Blueprint(
         rrb.Horizontal(
             rrb.Vertical(
@@ -466,9 +484,41 @@ def _log_vio_truth(rec: Any, result: VioResult, gt: Any, length: float) -> None:
             _send_scalars(rec, f"joints/truth/theta_{j + 1}", indexes, truth.theta[:, j], f"true theta_{j + 1}")
 
 
-def log_vio(rec: Any, result: VioResult, cal: GimbalCalibration, T_sI: FloatArray, ground_truth: Any = None) -> None:
+def _log_further_cameras(
+    rec: Any, result: VioResult, cameras: Sequence[RunCamera], indexes: Sequence[Any], length: float
+) -> None:
+    """Each further camera's pose relative to the static camera (rigid: once; on a chain: per keyframe at
+    its chain's estimated angles), its pinhole, and the further chains' joint angles over time."""
+    K = len(result.timestamps_ns)
+    for c in cameras:
+        entity = further_camera(c.name)
+        if not c.on_gimbal:
+            T_sc = scene.inverse(c.T_cs_at())
+            rec.log(entity, rr.Transform3D(translation=T_sc[:3, 3], mat3x3=T_sc[:3, :3]), static=True)
+        else:
+            theta = result.theta if c.slot == 0 else result.chain_theta.get(str(c.chain))
+            if theta is None or np.asarray(theta).size == 0:
+                continue
+            T = np.array([scene.inverse(c.T_cs_at(th)) for th in np.asarray(theta, float).reshape(K, -1)])
+            _send_poses(rec, entity, indexes, T)
+        rec.log(entity, rr.TransformAxes3D(0.5 * length, show_frame=True), static=True)
+        _log_camera(rec, further_image(c.name), c.model, length)
+    for name, theta in result.chain_theta.items():
+        for j in range(theta.shape[1]):
+            _send_scalars(rec, f"joints/{name}/theta_{j + 1}", indexes, theta[:, j], f"{name} theta_{j + 1}")
+
+
+def log_vio(
+    rec: Any,
+    result: VioResult,
+    cal: GimbalCalibration,
+    T_sI: FloatArray,
+    ground_truth: Any = None,
+    cameras: Sequence[RunCamera] = (),
+) -> None:
     """Log a VIO ``result`` (module docstring); ``T_sI`` the IMU -> static camera mount (4x4);
-    ``ground_truth`` a :class:`~dcc_fg.vio.evaluate.GroundTruth` or None."""
+    ``ground_truth`` a :class:`~dcc_fg.vio.evaluate.GroundTruth` or None; ``cameras`` the further cameras
+    of an N-camera run."""
     t = np.asarray(result.timestamps_ns, dtype=np.int64)
     K = len(t)
     length = _trajectory_extent(result.T_WI)
@@ -481,6 +531,7 @@ def log_vio(rec: Any, result: VioResult, cal: GimbalCalibration, T_sI: FloatArra
     rec.log("world/body/static_camera", rr.TransformAxes3D(0.5 * length, show_frame=True), static=True)
     _log_camera(rec, STATIC_IMAGE, cal.static_camera, length)
     _log_vio_chain(rec, result, cal, indexes, length)
+    _log_further_cameras(rec, result, cameras, indexes, length)
     strips = [result.T_WI[s, :3, 3] for s in segment_slices(result)]
     labels = [f"estimate, segment {k + 1}" for k in range(len(strips))]
     rec.log("world/trajectory/estimate", rr.LineStrips3D(strips, colors=ESTIMATE, labels=labels), static=True)
@@ -527,6 +578,7 @@ class VioRecorder:
         images: str = "none",
         bag: Path | None = None,
         topics: BagTopics | None = None,
+        cameras: Sequence[RunCamera] = (),
     ) -> None:
         if cal.static_camera is None:
             raise ValueError("the calibration has no static camera model (cam0): the tracks cannot be drawn")
@@ -538,13 +590,16 @@ class VioRecorder:
         self.keyframes = 0  # keyframes so far: the next keyframe's index
         self.images = images if bag is not None and topics is not None else "none"
         self.bag, self.topics = bag, topics
+        self.cameras = tuple(cameras)  # further cameras of an N-camera run
+        self._further = {c.index: (c.model, c.on_gimbal) for c in self.cameras}
         # frames whose images are shown: (frame index, keyframe index or -1, static stamp, gimbal stamp), ns
         self.shown: list[tuple[int, int, int, int]] = []
         labels = {**TRACK_CLASSES, **LANDMARK_CLASSES}
         infos = [rr.AnnotationInfo(id=c, label=label, color=color) for c, (label, color) in labels.items()]
         rec.log("world", rr.AnnotationContext(infos), static=True)
         size = rr.components.Radius.ui_points
-        for entity in [STATIC_TRACKS] + ([GIMBAL_TRACKS] if gimbal else []):
+        further = [f"{further_image(c.name)}/tracks" for c in self.cameras]
+        for entity in [STATIC_TRACKS] + ([GIMBAL_TRACKS] if gimbal else []) + further:
             rec.log(entity, rr.Points2D.from_fields(radii=size(TRACK_RADIUS_UI), show_labels=False), static=True)
         rec.log(LANDMARKS, rr.Points3D.from_fields(radii=size(LANDMARK_RADIUS_UI), show_labels=False), static=True)
 
@@ -566,6 +621,10 @@ class VioRecorder:
         self._log_tracks(STATIC_TRACKS, static)
         if gimbal is not None:
             self._log_tracks(GIMBAL_TRACKS, gimbal)
+        seen = further_tracks(frame, self._further)
+        for c in self.cameras:  # an empty set when the camera has no image this frame
+            empty = CameraTracks(np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros(0, np.uint16))
+            self._log_tracks(f"{further_image(c.name)}/tracks", seen.get(c.index, empty))
         if event.landmarks is not None:
             lm = window_landmarks(event.landmarks, frame)
             rec.log(LANDMARKS, rr.Points3D(lm.points, class_ids=lm.classes), rr.AnyValues(track_id=lm.ids))
@@ -579,18 +638,21 @@ class VioRecorder:
         after its last frame."""
         self._log_images()
         self.rec.reset_time()
-        log_vio(self.rec, result, self.cal, self.T_sI, self.ground_truth)
+        log_vio(self.rec, result, self.cal, self.T_sI, self.ground_truth, self.cameras)
 
     def _log_images(self) -> None:
         """The images of the frames in :attr:`shown`, read again from the bag by their exact stamps."""
         if not self.shown or self.bag is None or self.topics is None:
             return
-        cameras = [(STATIC_IMAGE, self.topics.static, [s for _, _, s, _ in self.shown])]
+        static = [s for _, _, s, _ in self.shown]
+        cameras = [(STATIC_IMAGE, self.topics.static, static, 0)]
         if self.dynamic_camera is not None and self.topics.dynamic is not None:
-            cameras.append((GIMBAL_IMAGE, self.topics.dynamic, [g for _, _, _, g in self.shown]))
-        for entity, topic, stamps in cameras:
+            cameras.append((GIMBAL_IMAGE, self.topics.dynamic, [g for _, _, _, g in self.shown], 0))
+        # further cameras: the image nearest to the static stamp (triggered together)
+        cameras += [(further_image(c.name), c.topic, static, FURTHER_IMAGE_TOLERANCE_NS) for c in self.cameras]
+        for entity, topic, stamps, tolerance in cameras:
             try:  # exact stamps: a frame without a gimbal partner finds no gimbal image
-                found = topic_images(self.bag, topic, np.array(stamps, dtype=np.int64), 0)
+                found = topic_images(self.bag, topic, np.array(stamps, dtype=np.int64), tolerance)
             except (ValueError, OSError) as exc:  # the bag was read once already: not expected
                 log.warning("rerun: the images of %s are not shown (%s); the tracks are", topic, exc)
                 continue
@@ -616,6 +678,7 @@ def vio_recording(
     bag: str | Path,
     ground_truth: str | Path | None = None,
     topics: BagTopics | None = None,
+    cameras: Sequence[RunCamera] = (),
 ) -> Iterator[VioRecorder | None]:
     """The recording of a VIO run (None when ``options`` want none): pass the recorder as the observer of
     :func:`~dcc_fg.vio.pipeline.run_vio_bag`, then call its :meth:`~VioRecorder.finish` with the result
@@ -623,11 +686,12 @@ def vio_recording(
     error). ``T_sI`` the IMU -> static camera mount (4x4); ``mode`` the smoother's; the ground truth is
     ``ground_truth`` (TUM file or bag) or, without it, the bag's own ``/ground_truth/pose`` topic when
     present, read before the run. ``topics``: the bag's image topics, for the camera images
-    (``options.vio_images``; None: no images)."""
+    (``options.vio_images``; None: no images); ``cameras``: the further cameras of an N-camera run
+    (:func:`~dcc_fg.data.cameras.run_cameras`), shown like the others."""
     if not options.wanted:
         yield None
         return
     gt = find_ground_truth(bag, ground_truth)
     gimbal = shows_gimbal(mode, cal)
-    with recording(options, vio_blueprint(gimbal)) as rec:
-        yield VioRecorder(rec, cal, T_sI, gimbal, gt, options.vio_images, Path(bag), topics)
+    with recording(options, vio_blueprint(gimbal, [c.name for c in cameras])) as rec:
+        yield VioRecorder(rec, cal, T_sI, gimbal, gt, options.vio_images, Path(bag), topics, cameras)

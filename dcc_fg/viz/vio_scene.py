@@ -174,6 +174,23 @@ def frame_tracks(
     return static, CameraTracks(d_ids, pixels(dynamic_camera, frame.dynamic_xy), d_cls)
 
 
+def further_tracks(frame: TrackFrame, cameras: dict[int, tuple[CameraModel, bool]]) -> dict[int, CameraTracks]:
+    """The tracks of the further cameras of ``frame`` (run index -> :class:`CameraTracks`) for the cameras
+    in ``cameras`` (run index -> (model, on a gimbal)): a track is matched when cam0 sees its id too; a
+    rigid camera's tracks take the static camera's classes, a gimbal camera's the gimbal camera's."""
+    s_ids = np.asarray(frame.static_ids, dtype=np.int64)
+    out = {}
+    for c in frame.extra:
+        if c.camera not in cameras:
+            continue
+        model, on_gimbal = cameras[c.camera]
+        ids = np.asarray(c.ids, dtype=np.int64)
+        matched, only = (GIMBAL_MATCHED, GIMBAL_ONLY) if on_gimbal else (STATIC_MATCHED, STATIC_ONLY)
+        cls = np.where(np.isin(ids, s_ids), matched, only).astype(np.uint16)
+        out[c.camera] = CameraTracks(ids, pixels(model, c.xy), cls)
+    return out
+
+
 @dataclass(frozen=True)
 class WindowLandmarks:
     """The sliding window's landmarks at a keyframe: ``ids`` (N,) track ids, ``points`` (N, 3) in W
