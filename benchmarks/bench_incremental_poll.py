@@ -2,8 +2,9 @@
 
 A rendered chessboard calibration of ``--pairs`` image pairs (PNG,
 :func:`dcc_fg.sim.write_dataset.write_calibration_dataset`) is copied into a folder that grows: all but
-the last pair first (one cold poll reads them), then the last pair arrives and the poll that picks it up is timed, ``--repeat`` times (the pair is removed and written
-again, with a new modification time, between repetitions), two ways in this process:
+the last pair first (one cold poll reads them), then the last pair arrives and the poll that picks it
+up is timed, ``--repeat`` times (the pair is removed and written again, with a new modification time,
+between repetitions), two ways in this process:
 
 * today's :class:`~dcc_fg.commands.calibrate_incremental.SnapshotSource`: image files already read (same
   path, size, modification time) are neither decoded nor detected again;
