@@ -10,6 +10,7 @@ camera only. The simulator gives cam0 and the gimbal camera the same noisy coord
 from __future__ import annotations
 
 import dataclasses
+from pathlib import Path
 from typing import Any
 
 import gtsam
@@ -20,10 +21,12 @@ import yaml
 from dcc_fg.cli import main
 from dcc_fg.data.cameras import run_cameras, run_chains
 from dcc_fg.data.vio import CameraTracks, ImuConfig, TrackFrame
+from dcc_fg.io.bag_writer import BagWriter
 from dcc_fg.model import GimbalCalibration
 from dcc_fg.sim.cluster_flight import flight_cluster
 from dcc_fg.sim.cluster_scene import preset_cluster
 from dcc_fg.sim.trajectory import default_static_mount
+from dcc_fg.sources.vio_bag import VioBag
 from dcc_fg.studies.vio_study import StudyConfig, run_mode
 from dcc_fg.vio.backend import VioOptions
 from dcc_fg.vio.backend.cameras import CameraRig
@@ -36,6 +39,7 @@ from dcc_fg.vio.backend.keys import (
     theta_key,
 )
 from dcc_fg.vio.backend.landmarks import LandmarkMap, validate_frames
+from dcc_fg.vio.pipeline import PipelineOptions, check_further_sync
 from factors import chain
 
 
@@ -236,3 +240,41 @@ def test_two_gimbals_each_chain_followed() -> None:
         f"two-gimbals: translation RMSE ratios {np.round(t_ratio, 3)}, primary joint RMSE ratios {np.round(j_ratio, 3)}"
     )
     assert np.mean(j_ratio) <= 1.05 and np.mean(t_ratio) <= 1.25
+
+
+def _bag_with_late_camera(path: Path, late_ms: float, n: int = 12) -> Path:
+    """A ROS2 bag: 200 Hz IMU, cam0 and the gimbal camera cam2 at 20 Hz with equal stamps, the stereo
+    partner cam1 stamped ``late_ms`` after them (a camera on its own clock)."""
+    rng = np.random.default_rng(0)
+    t0 = 1_000_000_000_000
+    with BagWriter(path, 2) as bag:
+        for k in range(10 * n + 1):
+            t = t0 + k * 5_000_000
+            bag.imu("/imu0", t, np.array([0.0, 0.0, 9.81]), np.zeros(3))
+            if k % 10 == 0 and k // 10 < n:
+                img = rng.integers(0, 255, (48, 64), dtype=np.uint8)
+                bag.image("/cam0/image_raw", t, img, "cam0")
+                bag.image("/cam2/image_raw", t, img, "cam2")
+                bag.image("/cam1/image_raw", t + int(late_ms * 1e6), img, "cam1")
+    return path
+
+
+def test_a_further_camera_on_its_own_clock_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Further cameras are used as exposed at cam0's stamp: a stereo partner 10 ms late (free-running) is
+    refused before any work, naming the topic and the gap; 1 ms (a triggered camera's driver) passes the
+    check; --max-further-gap accepts a larger gap knowingly."""
+    cal = tmp_path / "calibration.yaml"
+    d = {**flight_cluster("stereo+gimbal").to_dict(), "imu": ImuConfig(T_sI=default_static_mount()).to_dict()}
+    cal.write_text(yaml.safe_dump(d))
+    late = _bag_with_late_camera(tmp_path / "late", 10.0)
+    args = ["vio", str(late), "--calibration", str(cal), "--out", str(tmp_path / "o"), "-q"]
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert "topic /cam1/image_raw (cam1): its images are 10.00 ms (median) from cam0's" in err, err
+    assert not (tmp_path / "o").exists()
+    cameras = run_cameras(flight_cluster("stereo+gimbal"), "dcc")
+    vb = VioBag(late, "/imu0", "/cam0/image_raw", "/cam2/image_raw", extra_topics=["/cam1/image_raw"])
+    check_further_sync(vb, cameras, 12.0)  # accepted when allowed
+    ok = _bag_with_late_camera(tmp_path / "ok", 1.0)
+    vb = VioBag(ok, "/imu0", "/cam0/image_raw", "/cam2/image_raw", extra_topics=["/cam1/image_raw"])
+    check_further_sync(vb, cameras, PipelineOptions().max_further_gap_ms)

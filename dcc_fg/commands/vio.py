@@ -99,7 +99,9 @@ class VioRunOptions:
     dcc joint angles from the first frame's static <-> gimbal matches; ``start_s``: skip the first seconds
     of the bag (from its first IMU sample); ``cameras``: the further cameras of an N-camera calibration to
     use (names, e.g. ``[cam1]``; None: every camera the mode can use: static cameras and cameras on a chain
-    without joints in every mode, cameras on the primary chain in ``scc`` / ``dcc``).
+    without joints in every mode, cameras on the primary chain in ``scc`` / ``dcc``);
+    ``max_further_gap_ms``: the largest median stamp gap (ms) of a further camera's images to cam0's
+    accepted (they are taken as triggered together).
     """
 
     pixel_sigma: float = 1.0
@@ -109,6 +111,7 @@ class VioRunOptions:
     fit_initial_joints: bool = True
     start_s: float = 0.0
     cameras: tuple[str, ...] | None = None
+    max_further_gap_ms: float = 2.0
 
     def __post_init__(self) -> None:
         if not (np.isfinite(self.pixel_sigma) and self.pixel_sigma > 0):
@@ -357,6 +360,7 @@ def run_vio(
         frontend=frontend_config(config, cal),
         start_s=config.run.start_s,
         cameras=config.run.cameras,
+        max_further_gap_ms=config.run.max_further_gap_ms,
     )
     with outputs:
         bar = ProgressBar(progress)
@@ -459,6 +463,9 @@ def add_vio_flags(v: argparse.ArgumentParser) -> None:
         "the mode can use: static cameras in every mode, cameras on the gimbal chain in scc/dcc; cam0 and in "
         "scc/dcc the first camera on the chain are always used); their images are read from their rostopic in "
         "the calibration, else /camN/image_raw")  # fmt: skip
+    opt(v, "--max-further-gap", "run.max_further_gap_ms", type=float, metavar="MS", help="N-camera: the largest "
+        "median stamp gap (ms) between a further camera's images and cam0's that is accepted (default 2): they are "
+        "used as exposed at cam0's stamp, so a camera on its own clock is refused unless this allows it")  # fmt: skip
     opt(v, "--mode", "smoother.mode", choices=["dcc", "scc", "mono"], help="default dcc")
     opt(v, "--initial-joints", "smoother.theta_initial", type=lambda t: parse_angles(t, "--initial-joints"),
         metavar="RAD", help="dcc: starting guess of the joint angles, e.g. '1.57,0' (rad); by default they are found "

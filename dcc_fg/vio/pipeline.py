@@ -73,7 +73,9 @@ class PipelineOptions:
     when this process may use at least two cores (see :func:`~dcc_fg.vio.worker.resolve_mode`;
     ``benchmarks/bench_vio.py`` measures both on a given machine). ``start_s``: skip the first seconds of
     the bag (from its first IMU sample), e.g. to start in motion. ``cameras``: the further cameras of an
-    N-camera cluster to use (names; None: every camera the mode can use, :func:`~dcc_fg.data.cameras.run_cameras`).
+    N-camera cluster to use (names; None: every camera the mode can use, :func:`~dcc_fg.data.cameras.run_cameras`);
+    ``max_further_gap_ms``: the largest median stamp gap (ms) between a further camera's images and
+    cam0's that is accepted (:func:`check_further_sync`).
     """
 
     reject_dynamic: bool = True
@@ -83,10 +85,13 @@ class PipelineOptions:
     frontend: FrontendConfig | None = None
     start_s: float = 0.0
     cameras: tuple[str, ...] | None = None
+    max_further_gap_ms: float = 2.0
 
     def __post_init__(self) -> None:
         if not (np.isfinite(self.start_s) and self.start_s >= 0):
             raise ValueError(f"start_s must be a number of seconds >= 0, got {self.start_s!r}")
+        if not (np.isfinite(self.max_further_gap_ms) and self.max_further_gap_ms >= 0):
+            raise ValueError(f"max_further_gap_ms must be a number of ms >= 0, got {self.max_further_gap_ms!r}")
 
 
 def check_bag_inputs(calibration: GimbalCalibration, options: VioOptions, topics: BagTopics) -> None:
@@ -144,6 +149,29 @@ def check_time_offsets(vb: VioBag, options: VioOptions) -> None:
                 name,
                 off * 1e3,
                 period * 1e3,
+            )
+
+
+def check_further_sync(vb: VioBag, cameras: tuple[RunCamera, ...], max_gap_ms: float) -> None:
+    """Refuse further cameras whose images are not taken with cam0's (before any work).
+
+    A further camera's image is used as exposed at the static image's time (no time offset of its own:
+    the cameras of a cluster are triggered together). Its median stamp gap to the static image it is
+    paired with must be at most ``max_gap_ms``: a free-running camera's phase would put its observations
+    at the wrong body pose (5 m/s and 10 ms: 5 cm) with nothing in the estimate to show it.
+
+    Raises:
+        ValueError: naming the bag, topic, camera and the measured gap, and what to do.
+    """
+    for c in cameras:
+        stats = vb.extra_pairing_statistics.get(c.topic) or {}
+        gap = stats.get("gap_median_ms")
+        if gap is not None and float(gap) > max_gap_ms:
+            raise ValueError(
+                f"{vb.path}: topic {c.topic} ({c.name}): its images are {float(gap):.2f} ms (median) from cam0's, "
+                f"more than {max_gap_ms:g} ms: N-camera VIO takes a further camera as triggered with cam0 (exposed at "
+                f"cam0's stamp). Trigger the cameras together or correct the stamps, leave the camera out "
+                f"(--cameras), or accept the gap with --max-further-gap (run.max_further_gap_ms)"
             )
 
 
@@ -381,6 +409,7 @@ def run_statistics(
             "time_offsets_start_s": list(driver.options.offsets),
             **(vb.pairing_statistics or {}),
             "gimbal_images_between_frames": vb.gimbal_images_between,
+            "further": {c.name: vb.extra_pairing_statistics.get(c.topic) for c in driver.cameras},
         },
         "frames_outside_imu": worker.counters["skipped"],
         "image_gaps": len(vb.image_gaps),
@@ -458,6 +487,7 @@ def run_vio_bag(
         gyro_range=imu_config.gyro_range,
     )
     check_time_offsets(vb, options)
+    check_further_sync(vb, cameras, pipeline.max_further_gap_ms)
     if options.stamp_jitter is None:
         options = dataclasses.replace(options, stamp_jitter=vb.stamp_jitter())
     t_first, t_last = int(vb.imu.t_ns[0]), int(vb.imu.t_ns[-1])
