@@ -39,6 +39,7 @@ from dcc_fg.vio.backend.keys import (
     theta_key,
 )
 from dcc_fg.vio.backend.landmarks import LandmarkMap, validate_frames
+from dcc_fg.vio.health import vio_health
 from dcc_fg.vio.pipeline import PipelineOptions, check_further_sync
 from factors import chain
 
@@ -278,3 +279,18 @@ def test_a_further_camera_on_its_own_clock_is_refused(tmp_path: Path, capsys: py
     ok = _bag_with_late_camera(tmp_path / "ok", 1.0)
     vb = VioBag(ok, "/imu0", "/cam0/image_raw", "/cam2/image_raw", extra_topics=["/cam1/image_raw"])
     check_further_sync(vb, cameras, PipelineOptions().max_further_gap_ms)
+
+
+def test_health_flags_a_further_camera_that_contributed_nothing() -> None:
+    """A further camera none of whose tracks became an observation (wrong topic or extrinsics) is a
+    warning naming it; NaN joint angles of a further chain fail ``finite``."""
+    every, _ = _pair_runs("stereo+gimbal", 5, duration=6.0)
+    r = every["result"]
+    report = vio_health(r, ImuConfig(T_sI=default_static_mount()), VioOptions(mode="dcc"))
+    check = {c.name: c for c in report.checks}["cameras.cam1"]
+    assert check.passed and check.value > 1000
+    r.stats["extra_obs"] = {"cam1": 0}
+    check = {c.name: c for c in vio_health(r, ImuConfig(), VioOptions(mode="dcc")).checks}["cameras.cam1"]
+    assert not check.passed and check.severity == "warning" and "cam1" in check.hint
+    r.chain_theta = {"gimbal2": np.full((len(r.timestamps_ns), 2), np.nan)}
+    assert not {c.name: c for c in vio_health(r, ImuConfig(), VioOptions(mode="dcc")).checks}["finite"].passed

@@ -6,7 +6,8 @@ their thresholds (``options``: :class:`~dcc_fg.vio.backend.options.VioOptions`; 
 :class:`~dcc_fg.data.vio.ImuConfig`):
 
 * ``keyframes``: at least ``min_track_keyframes`` keyframes (fewer cannot triangulate a landmark);
-* ``finite``: every pose, velocity, bias and joint angle finite;
+* ``finite``: every pose, velocity, bias and joint angle (further gimbal chains' too) finite;
+* ``cameras.<name>`` (warning, N-camera runs): each further camera contributed landmark observations;
 * ``speed``: every keyframe speed within ``max_speed`` (m/s);
 * ``position_jumps``: within each trajectory segment, the distance between consecutive keyframes
   within what the previous speed and the IMU's acceleration range allow in the elapsed time
@@ -136,6 +137,30 @@ def _time_offset_checks(offsets: dict[str, Any], options: VioOptions) -> list[He
     return checks
 
 
+def _further_camera_checks(stats: dict[str, Any]) -> list[HealthCheck]:
+    """``cameras.<name>`` (warning): each further camera of an N-camera run contributed observations of
+    landmarks; none means its images, topic or extrinsics do not fit the others' (the run is the run of
+    the other cameras)."""
+    out = []
+    for name, count in (stats.get("extra_obs") or {}).items():
+        ok = int(count) > 0
+        out.append(
+            HealthCheck(
+                f"cameras.{name}",
+                ok,
+                f"{int(count)} observations of camera {name} used",
+                ""
+                if ok
+                else f"none of {name}'s tracks became an observation: check its topic, intrinsics and T_cs / tau_d "
+                "(a mirrored or wrong extrinsic leaves every point outside the gate), or leave it out with --cameras",
+                int(count),
+                1,
+                severity="warning",
+            )
+        )
+    return out
+
+
 def vio_health(result: VioResult, imu: ImuConfig, options: VioOptions) -> HealthReport:
     """Every health check of the trajectory ``result`` (module docstring)."""
     report = HealthReport("trajectory")
@@ -156,6 +181,7 @@ def vio_health(result: VioResult, imu: ImuConfig, options: VioOptions) -> Health
     if n == 0:
         return report
     finite = all(state_is_finite(_state(result, i)) for i in range(n))
+    finite = finite and all(bool(np.all(np.isfinite(th))) for th in result.chain_theta.values())
     report.add(
         HealthCheck(
             "finite",
@@ -181,6 +207,8 @@ def vio_health(result: VioResult, imu: ImuConfig, options: VioOptions) -> Health
         )
     )
     report.add(_jump_check(result, limits))
+    for check in _further_camera_checks(stats):
+        report.add(check)
     events = stats.get("divergences", [])
     bad = [e for e in events if not e.get("recovered", False)]
     report.add(
