@@ -96,3 +96,6 @@ def test_rerun_recording_shows_every_camera(bench: tuple[dict[str, Any], Path], 
     assert [r["keyframe"] for r in blobs] == list(range(len(t_kf)))
     tracks = rec[image + "/tracks"]["rows"]
     assert len(tracks) > len(t_kf) and sum(len(r["Points2D:positions"] or []) for r in tracks) > 1000
+    # dcc-fg evaluate scores the second chain against the bag's /ground_truth/joints_gimbal2
+    ev = evaluate_folder(out, folder / "flight")
+    assert len(ev["chain_joint_rmse_rad"]["gimbal2"]) == 2 and max(ev["chain_joint_rmse_rad"]["gimbal2"]) <= 1e-2

@@ -305,6 +305,9 @@ def format_evaluation(result: dict[str, Any]) -> str:
         lines.append(f"normalized rotation RMSE          {result['normalized_rotation_rmse_rad_per_m']:.3g} rad/m")
     for j, r in enumerate(result.get("joint_rmse_rad") or [], start=1):
         lines.append(f"joint {j} angle RMSE                {r:.3g} rad")
+    for name, rmse in (result.get("chain_joint_rmse_rad") or {}).items():
+        for j, r in enumerate(rmse or [], start=1):
+            lines.append(f"{name} joint {j} angle RMSE".ljust(34) + f"{r:.3g} rad")
     for seg in result.get("segments") or []:
         ape = seg.get("ape_rmse_m")
         text = f"{ape:.4f} m over {seg['keyframes']} keyframes" if ape is not None else f"{seg['keyframes']} keyframes"
