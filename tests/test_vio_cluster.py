@@ -23,12 +23,12 @@ from dcc_fg.data.cameras import run_cameras, run_chains
 from dcc_fg.data.vio import CameraTracks, ImuConfig, TrackFrame
 from dcc_fg.io.bag_writer import BagWriter
 from dcc_fg.model import GimbalCalibration
-from dcc_fg.sim.cluster_flight import flight_cluster
+from dcc_fg.sim.cluster_flight import flight_cluster, simulate_cluster_tracks
 from dcc_fg.sim.cluster_scene import preset_cluster
 from dcc_fg.sim.trajectory import default_static_mount
 from dcc_fg.sources.vio_bag import VioBag
-from dcc_fg.studies.vio_study import StudyConfig, run_mode
-from dcc_fg.vio.backend import VioOptions
+from dcc_fg.studies.vio_study import StudyConfig, _study_inputs, run_mode
+from dcc_fg.vio.backend import InitialState, VioOptions, run_vio
 from dcc_fg.vio.backend.cameras import CameraRig
 from dcc_fg.vio.backend.keys import (
     chain_theta_key,
@@ -294,3 +294,31 @@ def test_health_flags_a_further_camera_that_contributed_nothing() -> None:
     assert not check.passed and check.severity == "warning" and "cam1" in check.hint
     r.chain_theta = {"gimbal2": np.full((len(r.timestamps_ns), 2), np.nan)}
     assert not {c.name: c for c in vio_health(r, ImuConfig(), VioOptions(mode="dcc")).checks}["finite"].passed
+
+
+def test_a_further_camera_with_a_wrong_extrinsic_fails_the_run() -> None:
+    """The stereo partner's T_cs off by 1 deg (the tracks simulated with the true one): its stereo tracks
+    fail triangulation and its observations are gated, so almost none of its tracks become observations
+    and ``observations.cam1`` fails (an error: the trajectory is refused). With the true T_cs every
+    camera's residual is within 20 % of cam0's and every camera uses its tracks about as often as cam0."""
+    cfg = StudyConfig(duration=6.0, density=0.5, pixel_sigma=0.5, seed=2)
+    cal = flight_cluster("stereo+gimbal")
+    truth, pts, imu = _study_inputs(cfg, cal)
+    cams = run_cameras(cal, "dcc")
+    frames = simulate_cluster_tracks(truth, pts, cal, imu.T_sI, cams, 0.5, seed=3)
+    init = InitialState(int(truth.t_ns[0]), truth.T_WI[0], truth.v_W[0], truth.acc_bias[0], truth.gyro_bias[0],
+                        truth.theta[0])  # fmt: skip
+    opts = VioOptions(mode="dcc", sigma=0.5 / float(cal.static_camera.intrinsics[0]))  # type: ignore[union-attr]
+    wrong = dataclasses.replace(cams[0], T_cs=chain.se3_from_tau(np.r_[np.deg2rad(1.0), 0, 0, 0, 0, 0]) @ cams[0].T_cs)
+    checks, used = {}, {}
+    for name, run_cams in (("true", cams), ("wrong", (wrong,))):
+        res = run_vio(frames, truth.imu, imu, cal, opts, init, cameras=run_cams)
+        med, used[name] = res.stats["residual_median_px"], res.stats["observations_used_fraction"]
+        checks[name] = {c.name: c for c in vio_health(res, imu, opts).checks}
+        print(f"\n{name} T_cs: median residuals {med}, used fractions {used[name]}")
+        if name == "true":
+            assert all(abs(m / med["cam0"] - 1.0) < 0.2 for m in med.values())
+    for check in ("residuals.cam1", "residuals.cam2", "observations.cam1", "observations.cam2"):
+        assert checks["true"][check].passed, checks["true"][check].message
+    bad = checks["wrong"]["observations.cam1"]
+    assert not bad.passed and bad.severity == "error" and bad.value < 0.2 and "extrinsics" in bad.hint

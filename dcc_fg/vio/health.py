@@ -8,6 +8,12 @@ their thresholds (``options``: :class:`~dcc_fg.vio.backend.options.VioOptions`; 
 * ``keyframes``: at least ``min_track_keyframes`` keyframes (fewer cannot triangulate a landmark);
 * ``finite``: every pose, velocity, bias and joint angle (further gimbal chains' too) finite;
 * ``cameras.<name>`` (warning, N-camera runs): each further camera contributed landmark observations;
+* ``observations.<name>`` (N-camera runs): the fraction of each camera's tracks that became landmark
+  observations at least :data:`MIN_USED_RATIO` times cam0's;
+* ``residuals.<name>`` (N-camera runs): each camera's median reprojection residual (px,
+  :mod:`dcc_fg.vio.backend.residuals`) at most :data:`MAX_RESIDUAL_RATIO` times cam0's: all cameras go
+  through the same front end, so one that fits far worse than cam0 has a wrong ``T_cs`` / ``tau_d`` or
+  intrinsics (1 deg of extrinsic rotation on the simulated stereo partner: 10.8x, trajectory 160x worse);
 * ``speed``: every keyframe speed within ``max_speed`` (m/s);
 * ``position_jumps``: within each trajectory segment, the distance between consecutive keyframes
   within what the previous speed and the IMU's acceleration range allow in the elapsed time
@@ -137,6 +143,78 @@ def _time_offset_checks(offsets: dict[str, Any], options: VioOptions) -> list[He
     return checks
 
 
+#: Largest ratio of a camera's median reprojection residual to cam0's (``residuals.<name>``). Measured with
+#: correct extrinsics: 0.98-1.06 (tracks-level simulation), 0.96-1.30 (rendered cluster flights), 0.84
+#: (EuRoC's stereo pair); with 1 deg of rotation error on the simulated stereo partner: 10.8.
+MAX_RESIDUAL_RATIO = 3.0
+
+
+def _residual_checks(stats: dict[str, Any]) -> list[HealthCheck]:
+    """``residuals.<name>``: each camera's median residual (px) against cam0's (module docstring)."""
+    medians = stats.get("residual_median_px") or {}
+    ref = medians.get("cam0")
+    if not ref:
+        return []
+    out = []
+    for name, med in medians.items():
+        if name == "cam0" or med is None:
+            continue
+        ratio = float(med) / float(ref)
+        ok = ratio <= MAX_RESIDUAL_RATIO
+        out.append(
+            HealthCheck(
+                f"residuals.{name}",
+                ok,
+                f"median reprojection residual of {name} {float(med):.2f} px, {ratio:.2f}x cam0's "
+                f"({float(ref):.2f} px; limit {MAX_RESIDUAL_RATIO:g}x)",
+                ""
+                if ok
+                else f"{name} does not fit the other cameras: check its extrinsics (T_cs of a static camera, tau_d "
+                "on a chain), its intrinsics and that it is triggered with cam0; or leave it out with --cameras",
+                ratio,
+                MAX_RESIDUAL_RATIO,
+            )
+        )
+    return out
+
+
+#: Smallest ratio of a camera's used-observation fraction to cam0's (``observations.<name>``). Measured with
+#: correct extrinsics: 0.97-1.07 (rendered cluster flights, fractions 0.79-0.88), 1.01 (EuRoC's stereo pair);
+#: the simulated stereo partner 1 deg off: 0 (no track of it became an observation).
+MIN_USED_RATIO = 0.2
+
+
+def _used_checks(stats: dict[str, Any]) -> list[HealthCheck]:
+    """``observations.<name>``: the fraction of each camera's tracks that became observations, against
+    cam0's (:meth:`~dcc_fg.vio.backend.residuals.CameraResiduals.used_fractions`)."""
+    fractions = stats.get("observations_used_fraction") or {}
+    ref = fractions.get("cam0")
+    if not ref:
+        return []
+    out = []
+    for name, frac in fractions.items():
+        if name == "cam0" or frac is None:
+            continue
+        ratio = float(frac) / float(ref)
+        ok = ratio >= MIN_USED_RATIO
+        out.append(
+            HealthCheck(
+                f"observations.{name}",
+                ok,
+                f"{100 * float(frac):.1f} % of {name}'s tracks became landmark observations, {ratio:.2f}x cam0's "
+                f"{100 * float(ref):.1f} % (limit {MIN_USED_RATIO:g}x)",
+                ""
+                if ok
+                else f"{name}'s features do not fit the other cameras' (its stereo tracks fail triangulation or its "
+                "observations are gated): check its extrinsics (T_cs / tau_d), intrinsics and triggering; or leave "
+                "it out with --cameras",
+                ratio,
+                MIN_USED_RATIO,
+            )
+        )
+    return out
+
+
 def _further_camera_checks(stats: dict[str, Any]) -> list[HealthCheck]:
     """``cameras.<name>`` (warning): each further camera of an N-camera run contributed observations of
     landmarks; none means its images, topic or extrinsics do not fit the others' (the run is the run of
@@ -207,7 +285,7 @@ def vio_health(result: VioResult, imu: ImuConfig, options: VioOptions) -> Health
         )
     )
     report.add(_jump_check(result, limits))
-    for check in _further_camera_checks(stats):
+    for check in _further_camera_checks(stats) + _residual_checks(stats) + _used_checks(stats):
         report.add(check)
     events = stats.get("divergences", [])
     bad = [e for e in events if not e.get("recovered", False)]

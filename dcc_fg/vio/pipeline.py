@@ -290,7 +290,8 @@ class SmootherDriver:
             self.start = {"how": "given", "detail": "initial state given"}
         elif state is not None:
             start = InitialState(t, state.T_WI, state.v_W, state.acc_bias, state.gyro_bias, np.zeros(0))
-        self.smoother = VioSmoother(self.imu, self.imu_config, None if mono else self.cal, self.options, self.cameras)
+        cal = None if mono and not self.cameras else self.cal  # mono: the cameras' models only (residual check)
+        self.smoother = VioSmoother(self.imu, self.imu_config, cal, self.options, self.cameras)
         self.smoother.initialize(frame, start, start_sigmas(self.selector, self.options))
         self.smoother.stats["start"] = self.start
         self.t_start_data = t

@@ -89,11 +89,17 @@ def landmark_is_good(p: FloatArray, T_Wc: FloatArray, xy: FloatArray, options: V
     return bool(landmarks_are_good(np.asarray(p, float)[None], T_Wc[None], xy[None], options)[0])
 
 
+def prediction_error(T_cW: FloatArray, p_W: FloatArray, z: FloatArray) -> float:
+    """Distance (normalized units) of landmark ``p_W``'s projection in camera ``T_cW`` (W -> camera) from
+    the observation ``z``; inf when the landmark is behind the camera."""
+    p_c = T_cW[:3, :3] @ p_W + T_cW[:3, 3]
+    return float("inf") if p_c[2] <= 0 else float(np.linalg.norm(p_c[:2] / p_c[2] - z))
+
+
 def outside_gate(T_cW: FloatArray, p_W: FloatArray, z: FloatArray, max_error: float) -> bool:
     """True if landmark ``p_W`` is behind camera ``T_cW`` (W -> camera) or projects farther than
     ``max_error`` (normalized units) from the observation ``z``."""
-    p_c = T_cW[:3, :3] @ p_W + T_cW[:3, 3]
-    return bool(p_c[2] <= 0 or np.linalg.norm(p_c[:2] / p_c[2] - z) > max_error)
+    return prediction_error(T_cW, p_W, z) > max_error
 
 
 def _attempts(obs: list[Observation], rigid: frozenset[int] = frozenset({0})) -> list[list[Observation]]:

@@ -49,8 +49,9 @@ from dcc_fg.vio.backend.keys import (
     theta_key,
     velocity_key,
 )
-from dcc_fg.vio.backend.landmarks import LandmarkMap, outside_gate
+from dcc_fg.vio.backend.landmarks import LandmarkMap, prediction_error
 from dcc_fg.vio.backend.options import NS, FloatArray, InitialState, VioOptions, VioResult
+from dcc_fg.vio.backend.residuals import CameraResiduals
 from dcc_fg.vio.backend.state import KeyframeState, result_from_states
 from dcc_fg.vio.backend.window import AnchorSigmas, FixedLagWindow, anchor_factors, window_start_ns
 from dcc_fg.vio.backend.zupt import static_tracks_at_rest, zero_velocity_factors
@@ -98,6 +99,7 @@ class VioSmoother:
         self.robust = RobustLoss("huber", options.robust_k)
         self.rig = CameraRig(calibration, self.T_sI, options, cameras)
         self.chains = ChainStates(cameras, options, self.T_sI)  # further chains' joint angles (dcc)
+        self.residuals = self._camera_residuals(cameras, calibration)
         self.exposure = ExposureModel(options, imu, self._mounts())
         self.window = FixedLagWindow(options)
         self.landmarks = LandmarkMap(frozenset(c for c in (STATIC, *self.rig.extra) if self.rig.is_rigid(c)))
@@ -135,6 +137,20 @@ class VioSmoother:
         self.theta_sigma: dict[int, FloatArray] = {}  # joint-angle 1-sigma per keyframe (joint_sigmas)
 
     # ------------------------------------------------------------------ helpers
+    def _camera_residuals(
+        self, cameras: Sequence[RunCamera], calibration: GimbalCalibration | None
+    ) -> CameraResiduals | None:
+        """Per-camera residual bookkeeping of an N-camera run (None for one or two cameras, or without
+        cam0's intrinsics): focal lengths (px) of cam0, the gimbal camera (scc / dcc) and each further one."""
+        if not cameras or calibration is None or calibration.static_camera is None:
+            return None
+        focal = {STATIC: float(np.mean(calibration.static_camera.intrinsics[:2]))}
+        if self.opt.mode != "mono" and calibration.dynamic_camera is not None:
+            focal[GIMBAL] = float(np.mean(calibration.dynamic_camera.intrinsics[:2]))
+        for c in cameras:
+            focal[c.index] = float(np.mean(c.model.intrinsics[:2]))
+        return CameraResiduals(focal)
+
     def _mounts(self) -> dict[int, CameraMount]:
         """``T_Ic`` of each camera for the exposure-time poses (:mod:`.exposure`)."""
         o = self.opt
@@ -642,13 +658,18 @@ class VioSmoother:
             if ids.size == 0:
                 continue
             T_cW = chain.inv_se3(self._T_Wc(k, cam, self._theta_for(k, cam, values)))
+            if self.residuals is not None:
+                self.residuals.offer(cam, ids.size)
             for tid, z in zip(ids.tolist(), xy, strict=True):
                 lm = lms.active.get(tid)
                 if lm is None:
                     lms.buffer(tid, k, cam, z)
                     continue
-                if outside_gate(T_cW, lms.position[lm], z, o.observation_gate * o.sigma):
+                err = prediction_error(T_cW, lms.position[lm], z)
+                if err > o.observation_gate * o.sigma:
                     self.stats["gated"] += 1
+                    if self.residuals is not None:  # a gated observation counts with its predicted error
+                        self.residuals.add_gated(cam, err)
                     continue
                 graph.add(self._factor(k, cam, lm, z))
                 lms.last_seen_ns[lm] = t
@@ -658,6 +679,14 @@ class VioSmoother:
     def _factor(self, k: int, cam: int, lm: int, z: FloatArray) -> gtsam.NonlinearFactor:
         """Reprojection factor of landmark ``lm`` seen by camera ``cam`` at keyframe k (counted)."""
         self.vision_factors += 1
+        if self.residuals is not None:
+            f = self._camera_factor(k, cam, lm, z)
+            self.residuals.add(cam, f)
+            return f
+        return self._camera_factor(k, cam, lm, z)
+
+    def _camera_factor(self, k: int, cam: int, lm: int, z: FloatArray) -> gtsam.NonlinearFactor:
+        """The reprojection factor of :meth:`_factor` (module docstring of :mod:`.cameras`)."""
         if cam in self.rig.extra:
             self.stats["extra_obs"][self.rig.extra[cam].name] += 1
             return self.rig.extra_factor(
@@ -711,6 +740,11 @@ class VioSmoother:
                 {"t_ns": self.kf_times[self.k], "keyframe": self.k, "reason": f"failed update: {error}"}
             )
         self._refresh()
+        if self.residuals is not None:
+            if error is None:
+                self.residuals.evaluate(self.window.estimate())
+            else:
+                self.residuals.discard()
         self.exposure.maybe_freeze(self.window.smoother, self.kf_times[self.k])
         if error is None and self.opt.joint_sigmas and self.opt.mode == "dcc":
             self._joint_sigmas(leaving_only=True)
@@ -848,6 +882,12 @@ class VioSmoother:
             self._joint_sigmas(leaving_only=False)
         res = result_from_states(self.estimates, self.opt.mode, self.stats, self.theta_sigma if want_sigmas else None)
         res.chain_theta = self.chains.result(sorted(self.estimates))
+        if self.residuals is not None:
+            names = {STATIC: "cam0", **{c: cam.name for c, cam in self.rig.extra.items()}}
+            if self.cal is not None:
+                names[GIMBAL] = self.cal.cluster().primary_gimbal_camera
+            res.stats["residual_median_px"] = {names[c]: m for c, m in self.residuals.medians().items()}
+            res.stats["observations_used_fraction"] = {names[c]: f for c, f in self.residuals.used_fractions().items()}
         res.stats.update(self.recovery_stats(res.timestamps_ns))
         res.stats["time_offsets"] = self.exposure.summary(self.window.smoother, gimbal=self.opt.mode != "mono")
         return res
