@@ -104,6 +104,8 @@ class ChainStates:
 
     def _fit_landmarks(self, ch: FurtherChain, frame: TrackFrame, T_WI: FloatArray, theta0: FloatArray,
                        prior_sigma: float, landmarks: LandmarkMap) -> FloatArray:  # fmt: skip
+        """Chain ``ch``'s angles fitted to its camera's observations of known landmarks in ``frame`` (body
+        pose ``T_WI`` held; prior ``theta0`` with ``prior_sigma`` rad); ``theta0`` without them."""
         xy = next((e for e in frame.extra if e.camera == ch.camera.index), None)
         if xy is None:
             return theta0
