@@ -18,7 +18,7 @@ from dcc_fg.sim.flight_render import WorldRenderer, planes_from_world
 from dcc_fg.sim.trajectory import BodyTrajectory, FlightConfig, World, default_static_mount, flight_calibration
 from dcc_fg.sources.vio_bag import VioBag
 from dcc_fg.vio.epipolar import epipolar_distance, essential
-from dcc_fg.vio.frontend import Frontend, FrontendConfig
+from dcc_fg.vio.frontend import Frontend, FrontendConfig, GimbalHint, gimbal_outliers
 from dcc_fg.vio.worker import FrontendWorker, WorkerSpec
 from factors.camera import CameraModel
 from factors.chain import inv_se3, rot_x, rot_y, rot_z
@@ -391,3 +391,38 @@ def test_worker_tracks_further_cameras(tmp_path: Path, scene: Scene, mode: str) 
     assert worker.counters["processed"] == n and worker.counters["stats"]["cam2_seeded"] >= 30
     plain = FrontendWorker(dataclasses.replace(spec, extra=()), "inline")
     assert all(item.frame.extra == () for item in plain)
+
+
+def test_stage_two_for_a_further_gimbal_camera(scene: Scene) -> None:
+    """The second-stage outlier test on a further camera on the gimbal (its snapshot, its own T_cs at the
+    two frames' joint angles): with the true angles almost no track is an outlier, with angles 3 deg off
+    many are; dropping ids stops them in that camera only (cam0 keeps its tracks with the same ids)."""
+    cal = scene.cal
+    cam2 = second_gimbal_camera(cal)
+    fe = Frontend(cal.static_camera, cal.dynamic_camera, T_ds=cal.T_ds(scene.theta[0]), extra=[cam2])
+    config = fe.config
+    fractions_true, fractions_wrong = [], []
+    for k in range(6):
+        th = scene.theta[k]
+        T_cs = cam2.T_cs_at(th)
+        a = scene.render(cal.static_camera, scene.T_sW[k], seed=10 * k)
+        b = scene.render(cal.dynamic_camera, cal.T_ds(th) @ scene.T_sW[k], seed=10 * k + 1)
+        c = scene.render(cam2.model, T_cs @ scene.T_sW[k], seed=10 * k + 2)
+        fe.process(int(scene.t_ns[k]), a, b, T_ds=cal.T_ds(th), extra_images=[c], extra_T_cs=[T_cs])
+        if k == 0:
+            continue
+        snap = fe.camera_snapshot(2)
+        T_s = scene.T_sW[k] @ inv_se3(scene.T_sW[k - 1])  # the static camera's true motion
+        good = GimbalHint(cam2.T_cs_at(scene.theta[k - 1]), T_cs, T_s)
+        off = scene.theta[k - 1] + np.array([3.0, -3.0]) * DEG
+        bad = GimbalHint(cam2.T_cs_at(off), T_cs, T_s)
+        tracked = np.isfinite(snap.prev_xy[:, 0])
+        fractions_true.append(gimbal_outliers(snap, good, cam2.model, config)[tracked].mean())
+        fractions_wrong.append(gimbal_outliers(snap, bad, cam2.model, config)[tracked].mean())
+    assert max(fractions_true) < 0.05 and min(fractions_wrong) > 0.3, (fractions_true, fractions_wrong)
+    with pytest.raises(ValueError, match="no further camera with run index 5"):
+        fe.camera_snapshot(5)
+    ids = fe.extra[0].ids[:5].copy()
+    static_before = fe.static.ids.copy()
+    assert fe.drop_camera(2, ids) == 5
+    assert not np.isin(ids, fe.extra[0].ids).any() and np.array_equal(fe.static.ids, static_before)

@@ -746,6 +746,33 @@ class Frontend:
         motion = self._static_motion
         return DynamicSnapshot(d.ids.copy(), d.prev_xy.copy(), d.xy.copy(), self._static_pair, motion)
 
+    def _further(self, index: int) -> CameraTracker:
+        """The tracker of further camera ``index`` (run index); ValueError naming the cameras there are."""
+        for cam, tracker in zip(self.extra_cameras, self.extra, strict=True):
+            if cam.index == index:
+                return tracker
+        known = ", ".join(str(c.index) for c in self.extra_cameras) or "none"
+        raise ValueError(f"no further camera with run index {index} (further cameras: {known})")
+
+    def camera_snapshot(self, index: int) -> DynamicSnapshot:
+        """:meth:`dynamic_snapshot` of further camera ``index`` (a camera on a gimbal): its tracks of the
+        current frame and the static camera's two-view geometry, for the second-stage outlier test
+        (:func:`gimbal_outliers` with that camera's ``T_cs`` at the two frames' joint angles)."""
+        t = self._further(index)
+        return DynamicSnapshot(t.ids.copy(), t.prev_xy.copy(), t.xy.copy(), self._static_pair, self._static_motion)
+
+    def drop_camera(self, index: int, ids: IntArray) -> int:
+        """Stop tracking camera ``index``'s tracks with these ids (1: the gimbal camera, :meth:`drop_dynamic`;
+        >= 2: a further camera); the other cameras' tracks with the same ids go on. Returns how many."""
+        if index == 1:
+            return self.drop_dynamic(ids)
+        t = self._further(index)
+        if len(ids) == 0:
+            return 0
+        gone = np.isin(t.ids, ids)
+        t.keep(~gone)
+        return int(gone.sum())
+
     def drop_dynamic(self, ids: IntArray) -> int:
         """Stop tracking the gimbal tracks with these ids (those still alive); returns how many."""
         d = self.dynamic

@@ -217,6 +217,8 @@ class SmootherDriver:
         self.t_start_data = 0
         self.t_prev = 0
         self.kf_prev: tuple[int, FloatArray] | None = None  # last keyframe's time and joint angles (dcc)
+        self.kf_prev_chains: dict[int, FloatArray] = {}  # further chains' angles at that keyframe (slot ->)
+        self.further_rejected = 0  # tracks of further gimbal cameras stage two rejected
         self.rejected = np.zeros(0, np.int64)  # gimbal track ids stage two rejected after the last frame
         self.pending: list[Tracked] = []  # frames waiting for the start decision
         self.observer: Callable[[FrameEvent], None] | None = None
@@ -321,7 +323,28 @@ class SmootherDriver:
             bad = gimbal_outliers(item.snapshot, hint, self.cal.dynamic_camera, self.fe_config)
             self.rejected = np.asarray(item.snapshot.ids[bad], np.int64)
             self.worker.drop(self.rejected)
+            self._further_stage_two(item, w, theta_k0, theta_k)
         self.kf_prev = (t, theta_k)
+        self.kf_prev_chains = {
+            ch.slot: self.smoother.chains.theta[ch.slot].copy() for ch in self.smoother.chains.chains
+        }
+
+    def _further_stage_two(self, item: Tracked, w: float, theta_k0: FloatArray, theta_k: FloatArray) -> None:
+        """Stage two for the further cameras on a gimbal: each one's tracks against the epipolar geometry of
+        its own ``T_cs`` at the previous frame's (interpolated) and this keyframe's angles of its chain."""
+        assert self.smoother is not None
+        cams = {c.index: c for c in self.cameras}
+        for index, snap in item.further_snapshots:
+            c = cams[index]
+            if c.slot == 0:
+                th0, th1 = theta_k0, theta_k
+            else:
+                th1 = self.smoother.chains.theta[c.slot]
+                th0 = self.kf_prev_chains.get(c.slot, th1)
+            hint = GimbalHint(c.T_cs_at(th0 + w * (th1 - th0)), c.T_cs_at(th1))
+            ids = np.asarray(snap.ids[gimbal_outliers(snap, hint, c.model, self.fe_config)], np.int64)
+            self.worker.drop(ids, camera=index)
+            self.further_rejected += int(ids.size)
 
 
 @dataclass(frozen=True)
@@ -430,6 +453,7 @@ def run_statistics(
             "pairs": joint_fit.pairs,
         },
         "dynamic_tracks_rejected": worker.counters["dynamic_rejected"],
+        "further_tracks_rejected": driver.further_rejected,
         "frontend": worker.counters["stats"],
     }
 

@@ -108,6 +108,7 @@ class Tracked:
     frame: TrackFrame
     after_gap: bool
     snapshot: DynamicSnapshot | None
+    further_snapshots: tuple[tuple[int, DynamicSnapshot], ...] = ()
 
 
 @dataclass(frozen=True)
@@ -188,7 +189,13 @@ class _Tracker:
                 frame = dataclasses.replace(frame, dynamic_timestamp_ns=int(vf.dynamic_timestamp_ns))
             started = True
             self.processed += 1
-            yield Tracked(index, frame, vf.after_gap, fe.dynamic_snapshot() if spec.snapshots else None)
+            further = ()
+            if spec.snapshots:  # further cameras on a gimbal, with an image this frame
+                seen = {c.camera for c in frame.extra}
+                further = tuple(
+                    (c.index, fe.camera_snapshot(c.index)) for c in spec.extra if c.on_gimbal and c.index in seen
+                )
+            yield Tracked(index, frame, vf.after_gap, fe.dynamic_snapshot() if spec.snapshots else None, further)
 
 
 def _open_bag(spec: WorkerSpec) -> VioBag:
@@ -257,7 +264,7 @@ def child_main() -> None:
                 if msg[0] == "theta":
                     tracker.thetas.push(msg[1], msg[2])
                 elif msg[0] == "drop":
-                    tracker.frontend.drop_dynamic(msg[1])
+                    tracker.frontend.drop_camera(msg[2], msg[1])
             _send(out, item)  # blocks while the pipe is full: the smoother sets the pace
         _send(out, ("end", tracker.counters()))
     except BrokenPipeError:  # the parent stopped reading
@@ -306,14 +313,15 @@ class FrontendWorker:
         else:
             self._control(("theta", int(t_ns), np.asarray(theta, float)))
 
-    def drop(self, ids: IntArray) -> None:
-        """Stop tracking these gimbal-camera track ids."""
+    def drop(self, ids: IntArray, camera: int = 1) -> None:
+        """Stop tracking these track ids of camera ``camera`` (run index: 1 the gimbal camera, >= 2 a
+        further camera on a gimbal)."""
         if len(ids) == 0:
             return
         if self._tracker is not None:
-            self._tracker.frontend.drop_dynamic(np.asarray(ids, np.int64))
+            self._tracker.frontend.drop_camera(camera, np.asarray(ids, np.int64))
         else:
-            self._control(("drop", np.asarray(ids, np.int64)))
+            self._control(("drop", np.asarray(ids, np.int64), int(camera)))
 
     def __iter__(self) -> Iterator[Tracked]:
         if self._tracker is not None:
