@@ -181,7 +181,7 @@ def _pair_runs(preset: str, seed: int, duration: float = 15.0) -> tuple[dict[str
 
 
 def test_short_stereo_gimbal_run_uses_every_camera() -> None:
-    every, two = _pair_runs("stereo+gimbal", 5, duration=6.0)
+    every, two = _pair_runs("stereo+gimbal", 5, duration=10.0)
     r = every["result"]
     assert r.stats["failed_updates"] == 0 and r.stats["extra_obs"]["cam1"] > 1000
     assert two["result"].stats["extra_obs"] == {}
@@ -284,7 +284,7 @@ def test_a_further_camera_on_its_own_clock_is_refused(tmp_path: Path, capsys: py
 def test_health_flags_a_further_camera_that_contributed_nothing() -> None:
     """A further camera none of whose tracks became an observation (wrong topic or extrinsics) is a
     warning naming it; NaN joint angles of a further chain fail ``finite``."""
-    every, _ = _pair_runs("stereo+gimbal", 5, duration=6.0)
+    every, _ = _pair_runs("stereo+gimbal", 5, duration=10.0)
     r = every["result"]
     report = vio_health(r, ImuConfig(T_sI=default_static_mount()), VioOptions(mode="dcc"))
     check = {c.name: c for c in report.checks}["cameras.cam1"]
@@ -297,11 +297,12 @@ def test_health_flags_a_further_camera_that_contributed_nothing() -> None:
 
 
 def test_a_further_camera_with_a_wrong_extrinsic_fails_the_run() -> None:
-    """The stereo partner's T_cs off by 1 deg (the tracks simulated with the true one): its stereo tracks
-    fail triangulation and its observations are gated, so almost none of its tracks become observations
-    and ``observations.cam1`` fails (an error: the trajectory is refused). With the true T_cs every
-    camera's residual is within 20 % of cam0's and every camera uses its tracks about as often as cam0."""
-    cfg = StudyConfig(duration=6.0, density=0.5, pixel_sigma=0.5, seed=2)
+    """The stereo partner's T_cs off by 1 deg (the tracks simulated with the true one) wrecks the run (its
+    stereo tracks fail triangulation, its observations are gated, the landmarks go wrong): the cameras no
+    longer fit each other and a ``residuals.*`` / ``observations.*`` check fails (an error: the trajectory
+    is refused). With the true T_cs the run is healthy, every camera's residual is within 20 % of cam0's and
+    every camera uses its tracks about as often as cam0."""
+    cfg = StudyConfig(duration=10.0, density=0.5, pixel_sigma=0.5, seed=2)
     cal = flight_cluster("stereo+gimbal")
     truth, pts, imu = _study_inputs(cfg, cal)
     cams = run_cameras(cal, "dcc")
@@ -320,5 +321,7 @@ def test_a_further_camera_with_a_wrong_extrinsic_fails_the_run() -> None:
             assert all(abs(m / med["cam0"] - 1.0) < 0.2 for m in med.values())
     for check in ("residuals.cam1", "residuals.cam2", "observations.cam1", "observations.cam2"):
         assert checks["true"][check].passed, checks["true"][check].message
-    bad = checks["wrong"]["observations.cam1"]
-    assert not bad.passed and bad.severity == "error" and bad.value < 0.2 and "extrinsics" in bad.hint
+    assert all(c.passed for c in checks["true"].values() if c.severity == "error")
+    fit = [c for n, c in checks["wrong"].items() if n.startswith(("residuals.", "observations."))]
+    failed = [c for c in fit if not c.passed]
+    assert failed and all(c.severity == "error" and "extrinsics" in c.hint for c in failed), [c.message for c in fit]
