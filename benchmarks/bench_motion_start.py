@@ -27,7 +27,8 @@ from typing import Any
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_vio import _flight, _flight_config  # noqa: E402
+from bench_vio import _flight  # noqa: E402
+from bench_vio_cluster import flight_config  # noqa: E402
 
 from dcc_fg.sim.flight_bag import FlightBag, load_flight_calibration  # noqa: E402
 from dcc_fg.vio.backend import VioOptions, VioResult  # noqa: E402
@@ -77,7 +78,7 @@ def main(argv: list[str] | None = None) -> int:
     a = p.parse_args(argv)
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(a.keep or tmp)
-        fb = _flight(root / "moving", _flight_config(60.0), a.seed, moving=True)
+        fb = _flight(root / "moving", flight_config(60.0), a.seed, moving=True)
         gt = load_ground_truth(fb.bag)
         still, moving = run(fb, 0.0), run(fb, a.start)
         out: dict[str, Any] = {}

@@ -47,11 +47,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import bench_vio_cluster as cluster_bench  # noqa: E402
 
 
-def _flight_config(duration: float) -> FlightConfig:
-    """The paper's two loops when there is time to fly them (>= 40 s), else one short loop."""
-    return FlightConfig(duration=duration) if duration >= 40.0 else FlightConfig.short(duration)
-
-
 def _flight(folder: Path, cfg: FlightConfig, seed: int, moving: bool) -> FlightBag:
     """Render a flight, or reuse one that ``--keep`` left in ``folder`` with the same settings."""
     marker = folder / "bench_settings.json"
@@ -138,7 +133,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     a = p.parse_args(argv)
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(a.keep or tmp)
-        cfg = _flight_config(a.duration)
+        cfg = cluster_bench.flight_config(a.duration)
         t0 = time.perf_counter()
         flights = {
             "dcc": _flight(root / "moving", cfg, a.seed, moving=True),

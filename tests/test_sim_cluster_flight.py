@@ -28,7 +28,6 @@ from dcc_fg.sim.cluster_flight import (
     check_flight_cluster,
     flight_cluster,
     further_chain_motions,
-    simulate_cluster_tracks,
 )
 from dcc_fg.sim.cluster_scene import preset_cluster
 from dcc_fg.sim.flight_bag import (
@@ -53,6 +52,7 @@ from dcc_fg.sim.trajectory import (
     default_static_mount,
     flight_calibration,
     locked_gimbal,
+    simulate_camera_tracks,
     simulate_flight,
     simulate_tracks,
 )
@@ -193,8 +193,8 @@ def test_cluster_tracks_reproject_with_the_true_geometry(
     extra = run_cameras(cal, "dcc")
     assert [c.index for c in extra] == [2]
     names = {0: "cam0", 1: cal.cluster().primary_gimbal_camera, 2: extra[0].name}
-    exact = simulate_cluster_tracks(truth, P, cal, T_sI, extra, pixel_sigma=0.0)
-    noisy = simulate_cluster_tracks(truth, P, cal, T_sI, extra, pixel_sigma=SIGMA, seed=7)
+    exact = simulate_camera_tracks(truth, P, cal, T_sI, extra, pixel_sigma=0.0)
+    noisy = simulate_camera_tracks(truth, P, cal, T_sI, extra, pixel_sigma=SIGMA, seed=7)
     idx = truth.index_of(truth.frame_t_ns)
     landmark_of: dict[int, int] = {}
     seen_in: dict[int, set[int]] = {}  # landmark -> frames in which some camera saw it
@@ -243,8 +243,8 @@ def test_cluster_tracks_share_ids_and_keep_the_two_camera_tracks(
     cal = flight_cluster("stereo+gimbal")
     extra = run_cameras(cal, "dcc")
     two = simulate_tracks(truth, P, cal, T_sI, seed=4)
-    none = simulate_cluster_tracks(truth, P, cal, T_sI, (), seed=4)
-    many = simulate_cluster_tracks(truth, P, cal, T_sI, extra, seed=4)
+    none = simulate_camera_tracks(truth, P, cal, T_sI, (), seed=4)
+    many = simulate_camera_tracks(truth, P, cal, T_sI, extra, seed=4)
     shared, seen = 0, 0
     for a, b, c in zip(two, none, many, strict=True):
         # no further camera: simulate_tracks bit for bit
@@ -261,11 +261,11 @@ def test_cluster_tracks_share_ids_and_keep_the_two_camera_tracks(
     # the locked-gimbal and mono variants pass through as well
     theta = np.tile(truth.theta[0], (len(truth.frame_t_ns), 1))
     a = simulate_tracks(truth, P, cal, T_sI, seed=2, dynamic=False, theta=theta)
-    b = simulate_cluster_tracks(truth, P, cal, T_sI, (), seed=2, dynamic=False, theta=theta)
+    b = simulate_camera_tracks(truth, P, cal, T_sI, (), seed=2, dynamic=False, theta=theta)
     assert all(np.array_equal(x.static_xy, y.static_xy) and np.array_equal(x.static_ids, y.static_ids)
                for x, y in zip(a, b, strict=True))  # fmt: skip
     with pytest.raises(ValueError, match="distinct"):
-        simulate_cluster_tracks(truth, P, cal, T_sI, (extra[0], extra[0]))
+        simulate_camera_tracks(truth, P, cal, T_sI, (extra[0], extra[0]))
 
 
 # ------------------------------------------------------------------ rendered bags
@@ -490,7 +490,7 @@ def test_two_gimbals_tracks_follow_the_second_chain(flight: tuple[FlightTruth, n
     extra = run_cameras(cal, "dcc")
     idx = truth.index_of(truth.frame_t_ns)
     locked = np.tile(truth.theta[0], (idx.size, 1))  # overrides the primary chain only
-    exact = simulate_cluster_tracks(truth, P, cal, T_sI, extra, pixel_sigma=0.0, theta=locked)
+    exact = simulate_camera_tracks(truth, P, cal, T_sI, extra, pixel_sigma=0.0, theta=locked)
     worst_true, worst_primary, n = 0.0, 0.0, 0
     for f, frame in enumerate(exact):
         (t2,) = frame.extra
@@ -513,7 +513,7 @@ def test_two_gimbals_tracks_follow_the_second_chain(flight: tuple[FlightTruth, n
     assert worst_true < 1e-8 and worst_primary > 20.0, (worst_true, worst_primary)
     still = simulate_flight(truth.config, seed=3)
     with pytest.raises(ValueError, match="does not move chain 'gimbal2'"):
-        simulate_cluster_tracks(still, P, cal, T_sI, extra)
+        simulate_camera_tracks(still, P, cal, T_sI, extra)
 
 
 @pytest.fixture(scope="module")
@@ -619,7 +619,7 @@ def test_two_gimbals_cam2_sees_the_world_through_the_whole_flight() -> None:
     motions = further_chain_motions(cal, JointMotion())
     truth = simulate_flight(config, ImuConfig(T_sI=T_sI), seed=2, extra_joints=motions)
     P = World.around(config).sample_points(0.3, np.random.default_rng(2))
-    frames = simulate_cluster_tracks(truth, P, cal, T_sI, run_cameras(cal, "dcc"), seed=2)
+    frames = simulate_camera_tracks(truth, P, cal, T_sI, run_cameras(cal, "dcc"), seed=2)
     seen = np.array([f.extra[0].ids.size for f in frames])
     primary = np.array([f.dynamic_ids.size for f in frames])
     shared = np.array([np.intersect1d(f.extra[0].ids, f.static_ids).size for f in frames])

@@ -23,9 +23,9 @@ from dcc_fg.data.cameras import run_cameras, run_chains
 from dcc_fg.data.vio import CameraTracks, ImuConfig, TrackFrame
 from dcc_fg.io.bag_writer import BagWriter
 from dcc_fg.model import GimbalCalibration
-from dcc_fg.sim.cluster_flight import flight_cluster, simulate_cluster_tracks
+from dcc_fg.sim.cluster_flight import flight_cluster
 from dcc_fg.sim.cluster_scene import preset_cluster
-from dcc_fg.sim.trajectory import default_static_mount
+from dcc_fg.sim.trajectory import default_static_mount, simulate_camera_tracks
 from dcc_fg.sources.vio_bag import VioBag
 from dcc_fg.studies.vio_study import StudyConfig, _study_inputs, run_mode
 from dcc_fg.vio.backend import InitialState, VioOptions, run_vio
@@ -306,7 +306,7 @@ def test_a_further_camera_with_a_wrong_extrinsic_fails_the_run() -> None:
     cal = flight_cluster("stereo+gimbal")
     truth, pts, imu = _study_inputs(cfg, cal)
     cams = run_cameras(cal, "dcc")
-    frames = simulate_cluster_tracks(truth, pts, cal, imu.T_sI, cams, 0.5, seed=3)
+    frames = simulate_camera_tracks(truth, pts, cal, imu.T_sI, cams, 0.5, seed=3)
     init = InitialState(int(truth.t_ns[0]), truth.T_WI[0], truth.v_W[0], truth.acc_bias[0], truth.gyro_bias[0],
                         truth.theta[0])  # fmt: skip
     opts = VioOptions(mode="dcc", sigma=0.5 / float(cal.static_camera.intrinsics[0]))  # type: ignore[union-attr]

@@ -348,7 +348,8 @@ def run_vio(
     imu = imu_config(inputs)
     options = smoother_options(config, cal, cal_path, imu)
     mono = options.mode == "mono"
-    primary = cal.cluster().camera(cal.cluster().primary_gimbal_camera)
+    cluster = cal.cluster()
+    primary = cluster.camera(cluster.primary_gimbal_camera)
     dynamic_topic = config.topics.dynamic or primary.rostopic or default_topic(primary.name)
     topics = BagTopics(config.topics.imu, config.topics.static, None if mono else dynamic_topic)
     further = run_cameras(cal, options.mode, options.theta_fixed, config.run.cameras)  # bad names: before the work

@@ -27,6 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from dcc_fg.cluster import CameraCluster
 from dcc_fg.model import GimbalCalibration
 from factors import chain
 from factors.camera import CameraModel
@@ -94,10 +95,9 @@ class RunCamera:
         return self.T_cs_at(theta) @ T_sI
 
 
-def _rigid(cal: GimbalCalibration, name: str, theta: FloatArray | None) -> FloatArray | None:
+def _rigid(cluster: CameraCluster, name: str, theta: FloatArray | None) -> FloatArray | None:
     """``T_cs`` of camera ``name`` if it is rigid to the body (static, an L = 0 chain, or locked at
     ``theta`` on the primary chain), else None."""
-    cluster = cal.cluster()
     mount = cluster.camera(name)
     if mount.is_static:
         return cluster.T_cs(name)
@@ -147,7 +147,7 @@ def run_cameras(
         if not wanted:
             continue
         mount = cluster.camera(name)
-        T_cs = _rigid(calibration, name, theta if mode == "scc" else None)
+        T_cs = _rigid(cluster, name, theta if mode == "scc" else None)
         kin = None
         if T_cs is None:
             if mode != "dcc":

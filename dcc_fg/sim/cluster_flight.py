@@ -24,10 +24,9 @@ Every camera model is scaled by ``scale`` (:func:`scale_camera`), like the fligh
 :func:`load_flight_cluster` takes a preset name or a cluster calibration file (``cameras:`` /
 ``chains:``) instead.
 
-:func:`simulate_cluster_tracks` is :func:`dcc_fg.sim.trajectory.simulate_tracks` with every further
-camera of a run (:class:`~dcc_fg.data.cameras.RunCamera`, run index >= 2) observed as well, in
-``TrackFrame.extra``; a camera on a further chain is placed at that chain's true angles
-(``FlightTruth.extra_theta``).
+Synthetic tracks of such a cluster: :func:`dcc_fg.sim.trajectory.simulate_camera_tracks` (every further
+camera of a run, :class:`~dcc_fg.data.cameras.RunCamera`, observed as well, in ``TrackFrame.extra``; a
+camera on a further chain at that chain's true angles, ``FlightTruth.extra_theta``).
 
 Frames: ``s`` = cam0; ``T_cs`` maps points of s into camera c; ``e`` the gimbal's end effector.
 Units: metres, radians, pixels.
@@ -44,9 +43,8 @@ from numpy.typing import NDArray
 
 from dcc_fg.cluster import LEGACY_CHAIN, CameraCluster, CameraMount, ChainSpec
 from dcc_fg.data.cameras import RunCamera, ignored_cameras, run_cameras, run_chains
-from dcc_fg.data.vio import TrackFrame
 from dcc_fg.model import GimbalCalibration, load_calibration
-from dcc_fg.sim.trajectory import DEG, FlightTruth, JointMotion, chain_motion_variant, simulate_camera_tracks
+from dcc_fg.sim.trajectory import DEG, JointMotion, chain_motion_variant
 from dcc_fg.sim.trajectory import flight_calibration as two_camera_flight_calibration
 from factors import chain
 from factors.camera import CameraModel
@@ -198,42 +196,3 @@ def load_flight_cluster(spec: str | Path, scale: float = 1.0) -> GimbalCalibrati
         for m in cluster.cameras
     )
     return GimbalCalibration.from_cluster(CameraCluster(mounts, cluster.chains), source=str(path))
-
-
-def simulate_cluster_tracks(
-    truth: FlightTruth,
-    landmarks_W: FloatArray,
-    calibration: GimbalCalibration,
-    T_sI: FloatArray,
-    cameras: Sequence[RunCamera],
-    pixel_sigma: float = 0.5,
-    seed: int = 1,
-    max_range: float = 40.0,
-    margin_px: float = 5.0,
-    dynamic: bool = True,
-    theta: FloatArray | None = None,
-) -> list[TrackFrame]:
-    """Noisy normalized observations of ``landmarks_W`` (N, 3, m, world) by cam0, the primary gimbal
-    camera (unless ``dynamic=False``) and every further camera in ``cameras`` at each camera frame of
-    ``truth`` (:func:`~dcc_fg.sim.trajectory.simulate_camera_tracks`).
-
-    ``calibration``: the cluster (cam0 and the primary gimbal camera: ``static_camera``,
-    ``dynamic_camera``, ``T_ds``); ``cameras``: its further cameras as a run uses them
-    (:func:`~dcc_fg.data.cameras.run_cameras`), whose observations are in ``TrackFrame.extra`` in
-    this order; a camera on the primary chain is placed with ``cam.T_cs_at(theta)`` at the frame's
-    joint angles (``theta`` (F, L) rad overrides the truth's), a camera on a further chain (``slot``
-    >= 1) at that chain's true angles ``truth.extra_theta[cam.chain]`` (the flight must move it:
-    ``simulate_flight(..., extra_joints=further_chain_motions(calibration, joints))``). ``T_sI``: IMU
-    -> cam0. One landmark id space: an id is kept while any camera sees the landmark in consecutive
-    frames. Pixel noise N(0, ``pixel_sigma``) per axis, converted with each camera's focal lengths;
-    the further cameras draw from a generator of their own, so cam0's and the gimbal camera's
-    coordinates are those of
-    :func:`~dcc_fg.sim.trajectory.simulate_tracks` for the same ``seed`` (and with ``cameras = ()``
-    the whole result is, bit for bit).
-    """
-    indices = [c.index for c in cameras]
-    if len(set(indices)) != len(indices):
-        raise ValueError(f"run indices of the further cameras must be distinct, got {indices}")
-    return simulate_camera_tracks(
-        truth, landmarks_W, calibration, T_sI, tuple(cameras), pixel_sigma, seed, max_range, margin_px, dynamic, theta
-    )

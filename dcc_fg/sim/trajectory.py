@@ -572,8 +572,12 @@ def simulate_camera_tracks(
     and gimbal cameras draw their noise as :func:`simulate_tracks` does (generator ``seed``), the
     further cameras from a generator of their own (``[seed, 17]``): the static and gimbal
     coordinates are :func:`simulate_tracks`' bit for bit (only the ids differ where a further camera
-    sees other landmarks), and with ``extra = ()`` the whole output is.
+    sees other landmarks), and with ``extra = ()`` the whole output is. ValueError when two cameras of
+    ``extra`` have the same run index.
     """
+    indices = [c.index for c in extra]
+    if len(set(indices)) != len(indices):
+        raise ValueError(f"run indices of the further cameras must be distinct, got {indices}")
     cam_s, cam_d = calibration.static_camera, calibration.dynamic_camera
     if cam_s is None or (dynamic and cam_d is None):
         raise ValueError("calibration must carry the static (and dynamic) camera intrinsics")

@@ -22,7 +22,7 @@ import numpy as np
 from dcc_fg.data.cameras import run_cameras
 from dcc_fg.data.vio import ImuConfig
 from dcc_fg.model import GimbalCalibration
-from dcc_fg.sim.cluster_flight import flight_cluster, further_chain_motions, simulate_cluster_tracks
+from dcc_fg.sim.cluster_flight import flight_cluster, further_chain_motions
 from dcc_fg.sim.trajectory import (
     FlightConfig,
     FlightTruth,
@@ -30,8 +30,8 @@ from dcc_fg.sim.trajectory import (
     World,
     default_static_mount,
     flight_calibration,
+    simulate_camera_tracks,
     simulate_flight,
-    simulate_tracks,
 )
 from dcc_fg.vio.backend import InitialState, VioOptions, VioResult, run_vio
 from dcc_fg.vio.evaluate import GroundTruth, evaluate_trajectory, joint_rmse
@@ -84,15 +84,10 @@ def run_mode(
     mid = np.asarray(truth.joints.mid, float)
     theta = np.tile(mid, (truth.frame_t_ns.size, 1)) if mode == "scc" else None
     extra = () if preset is None else run_cameras(cal, mode, mid if mode == "scc" else None, cameras)
-    if preset is None:
-        frames = simulate_tracks(
-            truth, pts, cal, imu_cfg.T_sI, cfg.pixel_sigma, seed=cfg.seed + 1, theta=theta, dynamic=(mode != "mono")
-        )
-    else:
-        frames = simulate_cluster_tracks(
-            truth, pts, cal, imu_cfg.T_sI, extra, cfg.pixel_sigma, seed=cfg.seed + 1, theta=theta,
-            dynamic=(mode != "mono"),
-        )  # fmt: skip
+    # without further cameras this is simulate_tracks bit for bit
+    frames = simulate_camera_tracks(
+        truth, pts, cal, imu_cfg.T_sI, extra, cfg.pixel_sigma, seed=cfg.seed + 1, theta=theta, dynamic=(mode != "mono")
+    )
     theta0 = truth.theta[0] + cfg.theta_init_error if mode == "dcc" else np.zeros(0)
     init = InitialState(int(truth.t_ns[0]), truth.T_WI[0], truth.v_W[0], truth.acc_bias[0], truth.gyro_bias[0], theta0)
     opts = VioOptions(

@@ -38,6 +38,7 @@ Frames and units: ``T_WI`` body/IMU -> world, m, m/s, s.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
@@ -151,24 +152,27 @@ def _time_offset_checks(offsets: dict[str, Any], options: VioOptions) -> list[He
 MAX_RESIDUAL_RATIO = 3.0
 
 
+def _against_cam0(values: dict[str, Any]) -> Iterator[tuple[str, float, float, float]]:
+    """``(camera, value, cam0's value, ratio)`` of every camera but cam0 with a value, when cam0 has one."""
+    ref = values.get("cam0")
+    if not ref:
+        return
+    for name, value in values.items():
+        if name != "cam0" and value is not None:
+            yield name, float(value), float(ref), float(value) / float(ref)
+
+
 def _residual_checks(stats: dict[str, Any]) -> list[HealthCheck]:
     """``residuals.<name>``: each camera's median residual (px) against cam0's (module docstring)."""
-    medians = stats.get("residual_median_px") or {}
-    ref = medians.get("cam0")
-    if not ref:
-        return []
     out = []
-    for name, med in medians.items():
-        if name == "cam0" or med is None:
-            continue
-        ratio = float(med) / float(ref)
+    for name, med, ref, ratio in _against_cam0(stats.get("residual_median_px") or {}):
         ok = ratio <= MAX_RESIDUAL_RATIO
         out.append(
             HealthCheck(
                 f"residuals.{name}",
                 ok,
-                f"median reprojection residual of {name} {float(med):.2f} px, {ratio:.2f}x cam0's "
-                f"({float(ref):.2f} px; limit {MAX_RESIDUAL_RATIO:g}x)",
+                f"median reprojection residual of {name} {med:.2f} px, {ratio:.2f}x cam0's "
+                f"({ref:.2f} px; limit {MAX_RESIDUAL_RATIO:g}x)",
                 ""
                 if ok
                 else f"{name} does not fit the other cameras: check its extrinsics (T_cs of a static camera, tau_d "
@@ -189,22 +193,15 @@ MIN_USED_RATIO = 0.2
 def _used_checks(stats: dict[str, Any]) -> list[HealthCheck]:
     """``observations.<name>``: the fraction of each camera's tracks that became observations, against
     cam0's (:meth:`~dcc_fg.vio.backend.residuals.CameraResiduals.used_fractions`)."""
-    fractions = stats.get("observations_used_fraction") or {}
-    ref = fractions.get("cam0")
-    if not ref:
-        return []
     out = []
-    for name, frac in fractions.items():
-        if name == "cam0" or frac is None:
-            continue
-        ratio = float(frac) / float(ref)
+    for name, frac, ref, ratio in _against_cam0(stats.get("observations_used_fraction") or {}):
         ok = ratio >= MIN_USED_RATIO
         out.append(
             HealthCheck(
                 f"observations.{name}",
                 ok,
-                f"{100 * float(frac):.1f} % of {name}'s tracks became landmark observations, {ratio:.2f}x cam0's "
-                f"{100 * float(ref):.1f} % (limit {MIN_USED_RATIO:g}x)",
+                f"{100 * frac:.1f} % of {name}'s tracks became landmark observations, {ratio:.2f}x cam0's "
+                f"{100 * ref:.1f} % (limit {MIN_USED_RATIO:g}x)",
                 ""
                 if ok
                 else f"{name}'s features do not fit the other cameras' (its stereo tracks fail triangulation or its "

@@ -622,8 +622,8 @@ class VioRecorder:
         if gimbal is not None:
             self._log_tracks(GIMBAL_TRACKS, gimbal)
         seen = further_tracks(frame, self._further)
+        empty = CameraTracks(np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros(0, np.uint16))
         for c in self.cameras:  # an empty set when the camera has no image this frame
-            empty = CameraTracks(np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros(0, np.uint16))
             self._log_tracks(f"{further_image(c.name)}/tracks", seen.get(c.index, empty))
         if event.landmarks is not None:
             lm = window_landmarks(event.landmarks, frame)

@@ -84,6 +84,11 @@ class CameraRig:
                 self._extra_body[c.index] = ProjectionFactory(options.sigma, c.T_cI(T_sI), options.robust_k)
                 self._extra_static[c.index] = ProjectionFactory(options.sigma, c.T_cs_at(), options.robust_k)
 
+    @property
+    def has_camera_poses(self) -> bool:
+        """Whether keyframes get auxiliary poses ``e(k)`` of further cameras (chain cameras, ``camera_pose``)."""
+        return self.opt.gimbal_factor == "camera_pose" and bool(self._extra_chain)
+
     def is_rigid(self, cam: int) -> bool:
         """Whether camera ``cam`` (run index) is rigid to the body: cam0, and further rigid cameras."""
         return cam == STATIC or (cam in self.extra and not self.extra[cam].on_gimbal)
@@ -171,7 +176,7 @@ class CameraRig:
         camera on a gimbal chain at keyframe ``k`` (start value from the static camera's pose ``T_Ws`` at
         the exposure and its chain's angles ``theta_of(slot)``) and its eq. 13 tie to the static camera's
         pose and the chain's joint angles (:meth:`theta_key`)."""
-        if self.opt.gimbal_factor != "camera_pose" or not self._extra_chain:
+        if not self.has_camera_poses:
             return
         key, T_sX = self._static_exposure(k, static_timed, static_shift)
         sig = self.opt.camera_pose_sigma

@@ -214,7 +214,7 @@ class VioSmoother:
             self.exposure.add_image(k, STATIC, t, 0.0, pose, velocity, gyro_bias, None, None, graph, values, stamps)
         if self.opt.mode == "mono":
             return
-        if self.opt.mode == "dcc":
+        if self.rig.has_camera_poses:  # further cameras on a chain: their poses e(k), nothing to do otherwise
             T_Ws = self.exposure.T_Wc(k, STATIC, pose.matrix(), velocity, None)
             T_Ws = pose.matrix() @ chain.inv_se3(self.T_sI) if T_Ws is None else T_Ws
             static = (self.exposure.is_timed(k, STATIC), self.exposure.shift.get((k, STATIC)))
@@ -679,11 +679,10 @@ class VioSmoother:
     def _factor(self, k: int, cam: int, lm: int, z: FloatArray) -> gtsam.NonlinearFactor:
         """Reprojection factor of landmark ``lm`` seen by camera ``cam`` at keyframe k (counted)."""
         self.vision_factors += 1
+        factor = self._camera_factor(k, cam, lm, z)
         if self.residuals is not None:
-            f = self._camera_factor(k, cam, lm, z)
-            self.residuals.add(cam, f)
-            return f
-        return self._camera_factor(k, cam, lm, z)
+            self.residuals.add(cam, factor)
+        return factor
 
     def _camera_factor(self, k: int, cam: int, lm: int, z: FloatArray) -> gtsam.NonlinearFactor:
         """The reprojection factor of :meth:`_factor` (module docstring of :mod:`.cameras`)."""
@@ -739,10 +738,10 @@ class VioSmoother:
             self.divergences.append(
                 {"t_ns": self.kf_times[self.k], "keyframe": self.k, "reason": f"failed update: {error}"}
             )
-        self._refresh()
+        est = self._refresh()
         if self.residuals is not None:
             if error is None:
-                self.residuals.evaluate(self.window.estimate())
+                self.residuals.evaluate(est)
             else:
                 self.residuals.discard()
         self.exposure.maybe_freeze(self.window.smoother, self.kf_times[self.k])
@@ -774,9 +773,9 @@ class VioSmoother:
                 continue
             self.theta_sigma[kk] = np.sqrt(np.maximum(np.diag(cov), 0.0))
 
-    def _refresh(self) -> None:
+    def _refresh(self) -> gtsam.Values:
         """Estimates of the window's keyframes, the newest navigation state, bias, joint angles and
-        the landmark positions from the window's current estimate."""
+        the landmark positions from the window's current estimate (returned)."""
         est = self.window.estimate()
         self.exposure.refresh(est)
         oldest = self.k
@@ -793,6 +792,7 @@ class VioSmoother:
         self.chains.refresh(est, self.kf_times, k)
         self.landmarks.refresh(est, self.kf_times[k] - int(self.opt.lag * NS))
         self.stats["keyframes"] = k + 1
+        return est
 
     def _restart(self, values: gtsam.Values) -> None:
         """Recovery after a failed update: a fresh window anchored at the newest keyframe's
