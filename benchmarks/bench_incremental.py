@@ -10,7 +10,14 @@ covariances, what ``dcc-fg calibrate --joints 2`` runs), the time of ``finish()`
 average (2 shared cores: other jobs inflate the times). Asserted: the final result equals the batch
 one (data cost to 1e-6 relative, every ``T_ds(theta_i)`` within its 1-sigma).
 
-Usage: ``python benchmarks/bench_incremental.py [--snapshots 200] [--seed 0] [--backend isam2|lm]``
+With ``--background`` the global solves run in a background process (what ``dcc-fg calibrate --incremental``
+does) and the snapshots arrive every ``--interval`` s (default 0.5 s: a person taking snapshots by hand
+takes one every few seconds; a snapshot that arrives while an update still runs waits for it): the
+update times then include adopting a finished background solve and adding the snapshots that arrived
+during it. Also printed: how long after the ``start_snapshots``-th snapshot the first solution arrived.
+
+Usage: ``python benchmarks/bench_incremental.py [--snapshots 200] [--seed 0] [--backend isam2|lm]
+[--background [--interval 0.5]]``
 """
 
 from __future__ import annotations
@@ -48,17 +55,31 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
     ap.add_argument("--backend", choices=list(BACKENDS), default="isam2")
     ap.add_argument("--global-until", type=int, default=DEFAULT_GLOBAL_UNTIL)
     ap.add_argument("--predict-every", type=int, default=1)
+    ap.add_argument("--background", action="store_true", help="global solves in a background process")
+    ap.add_argument("--interval", type=float, default=0.5, help="--background: seconds between snapshots")
     args = ap.parse_args(argv)
     sim = simulate_calibration(args.seed, SceneConfig(n_calibration=args.snapshots, n_validation=1))
     data = sim.calibration_set
     data = replace(data, snapshots=[replace(s, joints=None) for s in data.snapshots])  # encoderless, no guesses
     load0 = os.getloadavg()
 
-    opt = IncrementalOptions(backend=args.backend, global_until=args.global_until, predict_every=args.predict_every)
+    opt = IncrementalOptions(
+        backend=args.backend,
+        global_until=args.global_until,
+        predict_every=args.predict_every,
+        background=args.background,
+    )
     inc = IncrementalCalibration(replace(data, snapshots=[]), 2, opt)
     t0 = time.perf_counter()
+    arrivals: list[float] = []
+    first_solution = float("nan")
     for s in data.snapshots:
+        arrivals.append(time.perf_counter())
         inc.add(s)
+        if inc.solving and not np.isfinite(first_solution):
+            first_solution = time.perf_counter() - arrivals[inc.start_snapshots - 1]
+        if args.background:  # the next snapshot arrives `interval` s after this one (or when this update ends)
+            time.sleep(max(0.0, arrivals[-1] + args.interval - time.perf_counter()))
     t_feed = time.perf_counter() - t0
     t0 = time.perf_counter()
     final = inc.finish()
@@ -71,12 +92,15 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
 
     ups = [u for u in inc.updates if u.strategy != "collect"]
     warm = [u.update_time_s for u in ups if u.strategy == "warm"]
-    glob = [(u.n_snapshots, u.reason, u.update_time_s) for u in ups if u.strategy == "global"]
+    glob = [(u.n_snapshots, u.reason.split(";")[0], u.update_time_s) for u in ups if u.strategy == "global"]
     late = [u.update_time_s for u in ups if u.strategy == "warm" and u.n_snapshots > len(data.snapshots) - 50]
     all_times = [u.update_time_s for u in ups]
     last = inc.updates[-1]
-    print(f"{len(data.snapshots)} snapshots, L = 2, backend {args.backend}, prediction every {args.predict_every}; "
-          f"load average {load0[0]:.2f} before, {load1[0]:.2f} after (2 cores)")  # fmt: skip
+    mode = f"global solves in the background, a snapshot every {args.interval:g} s" if args.background else (
+        "global solves inside the updates")  # fmt: skip
+    print(f"{len(data.snapshots)} snapshots, L = 2, backend {args.backend}, prediction every {args.predict_every}, "
+          f"{mode}; load average {load0[0]:.2f} before, {load1[0]:.2f} after (2 cores)")  # fmt: skip
+    print(f"first solution {first_solution:.2f} s after the {inc.start_snapshots}th snapshot arrived")
     print(f"collecting:   {sum(u.strategy == 'collect' for u in inc.updates)} snapshots before the first solve")
     print(f"all updates:  {stats(all_times)}")
     print(f"warm updates: {stats(warm)}")
@@ -99,10 +123,13 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
     assert worst <= 1.0, worst
     print("same final result as the batch calibration: OK")
     print(f"warm updates under {BUDGET_S:g} s: {'OK' if warm and max(warm) < BUDGET_S else 'NOT MET'}")
+    print(f"every update under {BUDGET_S:g} s: {'OK' if all_times and max(all_times) < BUDGET_S else 'NOT MET'}")
     return {
         "median_s": float(np.median(all_times)),
         "p95_s": float(np.percentile(all_times, 95)),
         "max_warm_s": float(max(warm)) if warm else float("nan"),
+        "max_s": float(max(all_times)),
+        "first_solution_s": first_solution,
         "batch_s": t_batch,
     }
 

@@ -33,6 +33,18 @@ rad, lengths in m, pixels in px.
    current estimate. The gauge prior stays on the reference snapshots of the last global solve
    (a gauge choice: it changes neither the cost nor ``T_ds``).
 
+**Background solves** (``background``, what ``dcc-fg calibrate --incremental`` uses): a global solve
+(first, doubled or after a residual jump) runs in a separate process (one worker of a ``forkserver``
+pool) on the snapshots collected so far, while the updates go on: before the first solution the
+snapshots are collected, after it they are warm updates. A finished background solve is adopted at the
+next :meth:`IncrementalCalibration.add` or :meth:`IncrementalCalibration.poll`: the graph is rebuilt at
+its solution and the snapshots that arrived meanwhile are added by warm updates (at most
+``catch_up`` of them, besides the new one, per update; the rest wait for the next). A re-solve replaces
+the current estimate only when its cost over the same snapshots is not higher. So no update waits for
+a global solve; the first solution arrives a global solve's time after the ``start_snapshots``-th
+snapshot. Without ``background`` (the API's default, deterministic) the global solves run inside
+:meth:`IncrementalCalibration.add`.
+
 Time per update at 200 snapshots: ``benchmarks/bench_incremental.py`` (the prediction, ~0.2 s, is most
 of a warm update; ``predict_every`` > 1 skips it in between).
 
@@ -54,7 +66,9 @@ so the kinematic vector itself, may differ from the batch's: they are a choice o
 from __future__ import annotations
 
 import logging
+import multiprocessing
 import time
+from concurrent.futures import Future, ProcessPoolExecutor
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -104,6 +118,7 @@ DEFAULT_GLOBAL_UNTIL = 40  # global re-solves at doubled snapshot counts only up
 DEFAULT_JUMP_RATIO = 1.5  # RMS residual growth (vs. the last global solve) that triggers a polish / global re-solve
 POLISH_ITERATIONS = 30  # Levenberg-Marquardt iterations of the polish after a residual jump
 PLAN_MODE = "calibration"  # the planner's prediction mode used for the tolerance (dcc_fg.planning.plan)
+DEFAULT_CATCH_UP = 3  # background mode: waiting snapshots added per update besides the new one
 
 
 @dataclass(frozen=True)
@@ -128,6 +143,10 @@ class IncrementalOptions:
         ranges: (L, 2) operating range of the joint angles, rad; None: the data's range plus a margin
             (:func:`dcc_fg.planning.range_spec.default_range`, re-evaluated at every prediction).
         tolerance: largest acceptable worst-case 1-sigma of ``T_ds`` over the range (rad, m).
+        background: run the global solves in a separate process while the updates go on (module
+            docstring); False: inside :meth:`IncrementalCalibration.add` (deterministic).
+        catch_up: background mode: snapshots that arrived during a background solve added per update
+            besides the new one (>= 1).
     """
 
     solver: CalibrationOptions = field(default_factory=CalibrationOptions)
@@ -139,6 +158,8 @@ class IncrementalOptions:
     predict_every: int = 1
     ranges: FloatArray | None = None
     tolerance: Tolerance = field(default_factory=lambda: Tolerance(1e-3, 1e-3))
+    background: bool = False
+    catch_up: int = DEFAULT_CATCH_UP
 
     def __post_init__(self) -> None:
         if self.solver.mode != "encoderless":
@@ -147,7 +168,7 @@ class IncrementalOptions:
             raise ValueError(f"backend must be one of {', '.join(BACKENDS)}, got {self.backend!r}")
         if self.solver.formulation != "bundle":
             raise ValueError(f"incremental calibration uses the bundle formulation (got {self.solver.formulation!r})")
-        for name in ("start_snapshots", "warm_iterations", "predict_every"):
+        for name in ("start_snapshots", "warm_iterations", "predict_every", "catch_up"):
             value = getattr(self, name)
             if not (isinstance(value, int | np.integer) and value >= 1):
                 raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
@@ -166,9 +187,10 @@ class Update:
     Attributes:
         n_snapshots: snapshots so far.
         needed: snapshots still needed before the first solve (0 once solving).
-        strategy: ``collect`` (nothing solved yet), ``global`` (global strategy), ``warm`` (warm-started
-            Levenberg-Marquardt).
-        reason: why a global solve ran (``first``, ``doubled``, ``residual jump``) or an error text.
+        strategy: ``collect`` (nothing solved yet), ``global`` (global strategy; in background mode: a
+            background solve was adopted at this update), ``warm`` (warm update).
+        reason: why a global solve ran (``first``, ``doubled``, ``residual jump``), what a background
+            solve did, how many snapshots wait to be added, or an error text.
         update_time_s: wall time of the whole update (solve and prediction), s.
         solve_time_s: of which the solve, s.
         iterations: Levenberg-Marquardt iterations of the solve.
@@ -200,6 +222,8 @@ class Update:
         """One line for a person recording by hand (angles in deg, mrad, mm, px)."""
         head = f"[{self.n_snapshots:4d}]"
         if self.strategy == "collect":
+            if not self.needed:  # background mode: enough snapshots, the first solve is running
+                return f"{head} collecting: {self.reason}"
             text = f"{head} collecting: {self.needed} more snapshot(s) before the first solve"
             return text + (f" ({self.reason})" if self.reason else "")
         solve = self.strategy + (f" ({self.reason})" if self.reason else "")
@@ -236,6 +260,62 @@ class Update:
         if self.suggestion is not None:
             out["next_joint_angles_deg"] = [float(np.degrees(x)) for x in self.suggestion.theta]
         return out
+
+
+@dataclass(frozen=True)
+class GlobalSolution:
+    """What a global solve hands back (picklable, from a background process too).
+
+    Attributes:
+        n_snapshots: the first ``n_snapshots`` snapshots were solved.
+        kin: kinematic vector of the solution; ``gauge_fixed`` its gauge-held entries.
+        T_st: (K, 4, 4) target -> static camera; ``T_dt`` (K, 4, 4) the PnP target -> gimbal camera poses.
+        joint_angles: (K, L) rad.
+        iterations: Levenberg-Marquardt iterations; ``solve_time_s`` wall time of the solve, s.
+    """
+
+    n_snapshots: int
+    kin: FloatArray
+    gauge_fixed: NDArray[np.bool_]
+    T_st: FloatArray
+    T_dt: FloatArray
+    joint_angles: FloatArray
+    iterations: int
+    solve_time_s: float
+
+
+def solve_global(
+    data: CalibrationDataset, n_joints: int, options: CalibrationOptions, initial: GimbalCalibration | None
+) -> GlobalSolution:
+    """The global strategy (:func:`dcc_fg.global_fit.calibrate_global`) on ``data``, without its interim
+    ambiguity warning (no news for the person recording). EstimatorError / ValueError when it fails."""
+    t0 = time.perf_counter()
+    logger = logging.getLogger("dcc_fg.global_fit")
+    level = logger.level
+    logger.setLevel(logging.ERROR)
+    try:
+        res = calibrate_global(data, n_joints, options, initial=initial)
+    finally:
+        logger.setLevel(level)
+    return GlobalSolution(
+        n_snapshots=len(data.snapshots),
+        kin=res.calibration.kin.copy(),
+        gauge_fixed=np.asarray(res.calibration.gauge_fixed, bool).copy(),
+        T_st=np.asarray(res.T_st, float).copy(),
+        T_dt=np.asarray(res.extra["pnp_T_dt"], float).copy(),
+        joint_angles=res.joint_angles.copy(),
+        iterations=int(res.iterations),
+        solve_time_s=time.perf_counter() - t0,
+    )
+
+
+@dataclass
+class _Pending:
+    """A global solve running in the background: its future, why, and the snapshots it was given."""
+
+    future: Future[GlobalSolution]
+    reason: str
+    snapshots: list[Snapshot]
 
 
 @dataclass
@@ -286,6 +366,8 @@ class IncrementalCalibration:
         self._global_rms = float("nan")
         self._prediction = _Prediction()
         self._since_prediction = 0
+        self._pool: ProcessPoolExecutor | None = None
+        self._pending: _Pending | None = None
         for s in data.snapshots:
             self.add(s)
 
@@ -295,6 +377,16 @@ class IncrementalCalibration:
     def data(self) -> CalibrationDataset:
         """The snapshots so far as a dataset."""
         return replace(self._template, snapshots=list(self.snapshots))
+
+    def _data_upto(self, n: int) -> CalibrationDataset:
+        """The first ``n`` snapshots as a dataset."""
+        return replace(self._template, snapshots=self.snapshots[:n])
+
+    def _waiting(self) -> list[Snapshot]:
+        """Snapshots kept but not yet in the graph (background mode: they arrived during a background
+        solve); all of them before the first solution."""
+        n = self._problem.n_snapshots if self._problem is not None else 0
+        return self.snapshots[n:]
 
     @property
     def solving(self) -> bool:
@@ -334,8 +426,9 @@ class IncrementalCalibration:
         on it); such a snapshot is not kept. A failing global re-solve keeps the warm estimate."""
         t0 = time.perf_counter()
         check_dataset(replace(self._template, snapshots=[snapshot]), self.n_joints, "validate")
+        adopted = self._adopt(wait=False)
         start = None
-        if self._problem is not None:
+        if self._problem is not None and not self._waiting():
             try:
                 start = self._warm_start(snapshot)
             except EstimatorError as exc:
@@ -349,6 +442,8 @@ class IncrementalCalibration:
             reason = "first"
         elif K >= 2 * self._last_global and K <= self.options.global_until:
             reason = "doubled"
+        if self.options.background:
+            return self._record(self._background_update(reason, adopted, start), t0)
         solved = self._solve_global(reason) if reason else None
         if solved is not None:
             update = solved
@@ -361,6 +456,41 @@ class IncrementalCalibration:
                 update = self._polish(update)
                 if update.rms_px > self.options.jump_ratio * self._global_rms:
                     update = self._solve_global("residual jump") or update
+        return self._record(self._with_prediction(update), t0)
+
+    def poll(self) -> Update | None:
+        """Background mode, without a new snapshot: adopt a finished background solve and add waiting
+        snapshots (as :meth:`add` does first); the update, or None when there was nothing to do."""
+        if not self.options.background:
+            return None
+        t0 = time.perf_counter()
+        adopted = self._adopt(wait=False)
+        if not adopted and not (self._problem is not None and self._waiting()):
+            return None
+        return self._record(self._background_update("", adopted, None), t0)
+
+    def wait(self) -> Update | None:
+        """Background mode: wait for a running background solve and adopt it (:meth:`poll` after it)."""
+        if self._pending is None:
+            return None
+        self._pending.future.exception()  # blocks until done; its outcome is read by poll
+        return self.poll()
+
+    def close(self) -> None:
+        """Stop the background process (a running solve is abandoned)."""
+        if self._pool is not None:
+            self._pool.shutdown(wait=False, cancel_futures=True)
+            self._pool = None
+        self._pending = None
+
+    def __enter__(self) -> IncrementalCalibration:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def _with_prediction(self, update: Update) -> Update:
+        """The update with the predicted accuracy and the next suggestion (every ``predict_every``)."""
         if self._problem is not None:
             self._since_prediction += 1
             if self._since_prediction >= self.options.predict_every or update.strategy == "global":
@@ -371,7 +501,116 @@ class IncrementalCalibration:
             update.worst_rotation, update.worst_translation = p.worst_rotation, p.worst_translation
             update.mean_rotation, update.mean_translation = p.mean_rotation, p.mean_translation
             update.suggestion, update.tolerance_reached = p.suggestion, p.reached
-        return self._record(update, t0)
+        return update
+
+    # ---------------------------------------------------------------- background solves
+
+    def _background_update(
+        self, reason: str, adopted: str, start: tuple[SnapshotMeasurements, FloatArray, FloatArray, FloatArray] | None
+    ) -> Update:
+        """Background mode (module docstring): start a global solve when one is due and none runs, add
+        the waiting snapshots (up to ``catch_up`` + 1, the newest last; ``start`` is the newest's warm
+        start when it is the only one waiting), polish and submit a re-solve after a residual jump."""
+        K = len(self.snapshots)
+        if reason and self._pending is None:
+            self._submit(reason)
+        if self._problem is None:
+            why = adopted or "the first solve is running in the background"
+            return Update(K, needed=0, reason=why)
+        update = self._catch_up(self.options.catch_up + 1, start)
+        if update.rms_px > self.options.jump_ratio * self._global_rms and not self._waiting():
+            update = self._polish(update)
+            if update.rms_px > self.options.jump_ratio * self._global_rms and self._pending is None:
+                self._submit("residual jump")
+                update.reason += ", global re-solve started in the background"
+        if adopted:
+            update.strategy = "global"
+            update.reason = adopted + (f"; {update.reason}" if update.reason else "")
+        return self._with_prediction(update)
+
+    def _submit(self, reason: str) -> None:
+        """Start the global strategy on every snapshot so far in the background process."""
+        if self._pool is None:
+            ctx = multiprocessing.get_context("forkserver")
+            self._pool = ProcessPoolExecutor(max_workers=1, mp_context=ctx)
+        snaps = list(self.snapshots)
+        data = replace(self._template, snapshots=snaps)
+        future = self._pool.submit(solve_global, data, self.n_joints, self._solve_opts(), self.initial)
+        self._pending = _Pending(future, reason, snaps)
+        self._last_global = len(snaps)
+
+    def _adopt(self, wait: bool) -> str:
+        """Adopt a finished background solve (``wait``: wait for a running one): rebuild the graph at
+        its solution and add the snapshots that arrived meanwhile (all of them), keeping the current
+        estimate instead when its cost over the same snapshots is lower. Returns what happened ("" when
+        nothing was finished)."""
+        pending = self._pending
+        if pending is None or not (wait or pending.future.done()):
+            return ""
+        self._pending = None
+        try:
+            sol = pending.future.result()
+        except (EstimatorError, ValueError) as exc:
+            return f"background {pending.reason} solve failed: {exc}"
+        n = sol.n_snapshots
+        if any(a is not b for a, b in zip(self.snapshots[:n], pending.snapshots, strict=False)):
+            return f"background {pending.reason} solve discarded: its snapshots were dropped meanwhile"
+        done = f"{pending.reason} solve on {n} snapshots, {sol.solve_time_s:.1f} s in the background"
+        if self._problem is None:
+            self._rebuild(sol)
+            return done
+        saved = (self._problem, self._graph, self._values, self._isam, self._n_held, self._n_obs, self._global_rms)
+        assert self._graph is not None and self._values is not None
+        current_error = self._graph.error(self._values)
+        n_current = self._problem.n_snapshots
+        self._rebuild(sol)
+        try:
+            self._catch_up(max(n_current - n, 0), None, drop=False)
+            assert self._graph is not None and self._values is not None
+            if self._graph.error(self._values) <= current_error:
+                return done
+            why = "lower cost"
+        except EstimatorError as exc:
+            why = f"a later snapshot does not fit the new solution: {exc}"
+        (self._problem, self._graph, self._values, self._isam, self._n_held, self._n_obs, self._global_rms) = saved
+        return f"{done}: kept the current estimate ({why})"
+
+    def _catch_up(
+        self,
+        limit: int,
+        start: tuple[SnapshotMeasurements, FloatArray, FloatArray, FloatArray] | None,
+        drop: bool = True,
+    ) -> Update:
+        """Add up to ``limit`` waiting snapshots by warm updates, in order; ``start``: the warm start of
+        the newest snapshot when it is the only one waiting. A waiting snapshot whose warm start fails
+        is dropped (said in the update's reason and logged), or with ``drop`` False the EstimatorError
+        is raised."""
+        t0 = time.perf_counter()
+        self._require()
+        update: Update | None = None
+        dropped: list[str] = []
+        iterations = 0
+        for snap in self._waiting()[:limit]:
+            try:
+                begin = start if start is not None and snap is self.snapshots[-1] else self._warm_start(snap)
+            except EstimatorError as exc:
+                if not drop:
+                    raise
+                self.snapshots.remove(snap)
+                dropped.append(f"dropped snapshot t={snap.timestamp_ns} ns ({exc})")
+                logging.getLogger(__name__).warning("%s", dropped[-1])
+                continue
+            update = self._warm(snap, begin)
+            iterations += update.iterations
+        if update is None:
+            assert self._graph is not None and self._values is not None
+            update = Update(len(self.snapshots), 0, "warm", "", 0.0, 0.0, 0, self._rms(self._graph.error(self._values)))
+        update.n_snapshots = len(self.snapshots)
+        update.iterations = iterations
+        update.solve_time_s = time.perf_counter() - t0
+        notes = dropped + ([f"{len(self._waiting())} snapshot(s) waiting"] if self._waiting() else [])
+        update.reason = "; ".join(notes)
+        return update
 
     def _record(self, update: Update, t0: float) -> Update:
         update.update_time_s = time.perf_counter() - t0
@@ -382,34 +621,25 @@ class IncrementalCalibration:
         return replace(self.options.solver, compute_covariance=False)
 
     def _solve_global(self, reason: str) -> Update | None:
-        """The global strategy on all snapshots so far; on success the graph is rebuilt at its solution.
-        On failure: before the first solve a ``collect`` update (try again with the next snapshot),
-        after it None (the caller keeps the warm estimate)."""
+        """The global strategy on all snapshots so far, here; on success the graph is rebuilt at its
+        solution. On failure: before the first solve a ``collect`` update (try again with the next
+        snapshot), after it None (the caller keeps the warm estimate)."""
         K = len(self.snapshots)
-        t0 = time.perf_counter()
-        logger = logging.getLogger("dcc_fg.global_fit")
-        level = logger.level
-        logger.setLevel(logging.ERROR)  # an interim ambiguity is no news for the person recording
         try:
-            res = calibrate_global(self.data, self.n_joints, self._solve_opts(), initial=self.initial)
+            sol = solve_global(self.data, self.n_joints, self._solve_opts(), self.initial)
         except (EstimatorError, ValueError) as exc:
             if self._problem is None:  # keep collecting; try again with the next snapshot
                 return Update(K, needed=1, reason=f"first solve failed: {exc}")
             return None
-        finally:
-            logger.setLevel(level)
-        self._rebuild(res)
+        self._rebuild(sol)
         self._last_global = K
-        assert self._graph is not None and self._values is not None
-        rms = self._rms(self._graph.error(self._values))
-        self._global_rms = rms
-        return Update(K, 0, "global", reason, 0.0, time.perf_counter() - t0, int(res.iterations), rms)
+        return Update(K, 0, "global", reason, 0.0, sol.solve_time_s, sol.iterations, self._global_rms)
 
-    def _rebuild(self, res: CalibrationResult) -> None:
-        """The persistent graph and values at a global solution (its gauge and held directions)."""
-        data, L, opt = self.data, self.n_joints, self.options.solver
+    def _rebuild(self, sol: GlobalSolution) -> None:
+        """The persistent graph and values at a global solution of the first ``sol.n_snapshots``
+        snapshots (its gauge and held directions); the RMS residual there is the new reference for a jump."""
+        data, L, opt = self._data_upto(sol.n_snapshots), self.n_joints, self.options.solver
         sigma = opt.pixel_sigma if opt.pixel_sigma is not None else 1.0
-        fixed = np.asarray(res.calibration.gauge_fixed, bool).copy()
         problem = CalibrationProblem(
             data=data,
             n_joints=L,
@@ -418,12 +648,12 @@ class IncrementalCalibration:
             sigma=sigma,
             robust=RobustLoss(opt.robust, opt.robust_k / sigma) if opt.robust else None,
             meas=[snapshot_measurements(data, s) for s in data.snapshots],
-            T_st0=np.asarray(res.T_st, float).copy(),
-            T_dt0=np.asarray(res.extra["pnp_T_dt"], float).copy(),
-            thetas_given=res.joint_angles.copy(),
-            thetas0=res.joint_angles.copy(),
-            kin_start=res.calibration.kin.copy(),
-            fixed=fixed,
+            T_st0=sol.T_st.copy(),
+            T_dt0=sol.T_dt.copy(),
+            thetas_given=sol.joint_angles.copy(),
+            thetas0=sol.joint_angles.copy(),
+            kin_start=sol.kin.copy(),
+            fixed=sol.gauge_fixed.copy(),
             offsets=gauge_fixed_joint_offsets(L, "encoderless"),
         )
         held = hold_degenerate_directions(problem, opt.nominal)
@@ -434,6 +664,7 @@ class IncrementalCalibration:
         self._n_held = held.count
         self._n_obs = 2 * sum(len(m.z_static) + len(m.z_dynamic) for m in problem.meas)
         self._start_isam()
+        self._global_rms = self._rms(graph.error(values))
 
     def _start_isam(self) -> None:
         """A fresh iSAM2 on the whole graph at the current values (backend ``isam2``)."""
@@ -488,7 +719,7 @@ class IncrementalCalibration:
         problem.T_dt0 = np.concatenate([problem.T_dt0, T_dt0[None]])
         problem.thetas_given = np.concatenate([problem.thetas_given, theta0[None]])
         problem.thetas0 = np.concatenate([problem.thetas0, theta0[None]])
-        problem.data = self.data
+        problem.data = self._data_upto(i + 1)
         factor = bundle_factor(
             problem.layout, m, problem.cams, problem.sigma, X(i), KIN_KEY, J(i), None, problem.robust
         )
@@ -534,7 +765,7 @@ class IncrementalCalibration:
             joint_angles=thetas,
             joint_angle_std=np.full_like(thetas, np.nan),
             T_st=T_st,
-            timestamps_ns=np.array([s.timestamp_ns for s in self.snapshots], dtype=np.int64),
+            timestamps_ns=np.array([s.timestamp_ns for s in self.snapshots[:K]], dtype=np.int64),
             residuals_static=empty,
             residuals_dynamic=empty,
             null_space_dim=0,
@@ -555,7 +786,7 @@ class IncrementalCalibration:
         out = _Prediction()
         try:
             res = self._light_result()
-            info = kinematics_information(res, self.data)
+            info = kinematics_information(res, self._data_upto(res.joint_angles.shape[0]))
             ranges = self.options.ranges if self.options.ranges is not None else default_range(res.joint_angles)
             acc = accuracy_over_range(info, ranges)
             s = acc.stats(PLAN_MODE)
@@ -577,7 +808,18 @@ class IncrementalCalibration:
         """The calibration of all snapshots: :func:`dcc_fg.calibrate.calibrate` from the current
         estimate (kinematics and joint angles), converged, with covariances when
         ``options.solver.compute_covariance``; ``extra["incremental"]`` lists the updates.
-        ValueError when no solve has happened yet."""
+        ValueError when no solve has happened yet. Background mode: waits for a running background
+        solve, adds every waiting snapshot (a first solve that failed in the background is tried once
+        more here) and stops the background process."""
+        if self.options.background:
+            try:
+                self._adopt(wait=True)
+                if self._problem is None and len(self.snapshots) >= self.start_snapshots:
+                    self._solve_global("first")
+                if self._problem is not None:
+                    self._catch_up(len(self._waiting()), None)
+            finally:
+                self.close()
         cal, thetas, _ = self.current()
         data = self.data
         guesses = replace(data, snapshots=[replace(s, joints=t) for s, t in zip(data.snapshots, thetas, strict=True)])

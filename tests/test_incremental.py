@@ -180,6 +180,37 @@ def _camchain(data: CalibrationDataset) -> dict[str, CamchainEntry]:
     return {"cam0": CamchainEntry(data.static_camera), "cam1": CamchainEntry(data.dynamic_camera)}
 
 
+def test_background_solves_do_not_block_the_updates() -> None:
+    """Background mode: the first solve runs in another process while snapshots are collected; when it
+    is adopted, the snapshots that came meanwhile join at most ``catch_up`` + 1 per update; a doubled
+    re-solve is adopted the same way; finish() reaches the batch calibration's minimum."""
+    _, data = _scene(24)
+    opt = IncrementalOptions(start_snapshots=8, global_until=16, background=True, catch_up=2)
+    with IncrementalCalibration(replace(data, snapshots=[]), 2, opt) as inc:
+        ups = [inc.add(s) for s in data.snapshots[:12]]
+        assert ups[7].strategy == "collect" and ups[7].needed == 0
+        assert ups[7].line() == "[   8] collecting: the first solve is running in the background"
+        adopted = inc.wait()
+        firsts = [u for u in inc.updates if u.strategy == "global"]
+        assert len(firsts) == 1 and firsts[0].reason.startswith("first solve on 8 snapshots")
+        if adopted is not None:  # adopted by wait(): 3 of the 4 waiting snapshots joined, one waits
+            assert inc.current()[1].shape[0] == 11 and "1 snapshot(s) waiting" in adopted.reason
+            assert 0.2 < adopted.rms_px < 0.8 and np.isfinite(adopted.worst_rotation)
+        while inc.poll() is not None:  # the rest join without a new snapshot
+            pass
+        assert inc.current()[1].shape[0] == 12
+        for s in data.snapshots[12:]:
+            inc.add(s)
+        inc.wait()
+        assert any(u.strategy == "global" and u.reason.startswith("doubled solve on 16") for u in inc.updates)
+        final = inc.finish()
+    batch = calibrate_global(data, 2, CalibrationOptions())
+    assert data_cost(final) == pytest.approx(data_cost(batch), rel=1e-6)
+    assert len(final.timestamps_ns) == 24
+    with pytest.raises(ValueError, match="catch_up"):
+        IncrementalOptions(catch_up=0)
+
+
 def test_polling_a_growing_detection_folder(tmp_path: Path) -> None:
     """Files written between polls are picked up; the run stops after the idle timeout."""
     _, data = _scene(12, seed=6, target=GRID)
@@ -228,10 +259,16 @@ def test_run_incremental_writes_the_calibration(tmp_path: Path, capsys) -> None:
     config = calibrate_cmd.CalibrateConfig(init=calibrate_cmd.InitOptions(joints=2))
     inputs = calibrate_cmd.CalibrationInputs(str(root), camchain=_camchain(data))
     out = tmp_path / "cal"
-    settings = IncrementalSettings(idle_timeout=0.0, tolerance="2mrad,2mm")
+    settings = IncrementalSettings(idle_timeout=0.0, tolerance="2mrad,2mm", background=False)
     res = run_incremental(inputs, out, config, settings)
     printed = capsys.readouterr().out
     assert "collecting" in printed and "global (first)" in printed and "wrote " in printed
+    # the default: the first solve in the background; the snapshots that came meanwhile join after it
+    res_bg = run_incremental(inputs, tmp_path / "cal_bg", config, replace(settings, background=True))
+    printed = capsys.readouterr().out
+    assert "first solve is running in the background" in printed
+    assert "global (first solve on 8 snapshots" in printed and "wrote " in printed
+    assert res_bg.final_error == pytest.approx(res.final_error, rel=1e-6)
     assert (out / "calibration.yaml").exists() and (out / "kinematics_information.npz").exists()
     assert len(res.timestamps_ns) == 10
     summary = (out / "summary.json").read_text()
@@ -267,7 +304,7 @@ def test_cli_calibrate_incremental_on_a_detection_folder(tmp_path: Path, capsys)
     camchain.write_text(camchain_to_yaml(_camchain(data)))
     out = tmp_path / "cal"
     argv = ["calibrate", str(root), "--camchain", str(camchain), "--joints", "2", "--out", str(out), "--incremental",
-            "--idle-timeout", "0", "--poll-seconds", "0.1", "--tolerance", "5mrad,5mm"]  # fmt: skip
+            "--blocking-solves", "--idle-timeout", "0", "--poll-seconds", "0.1", "--tolerance", "5mrad,5mm"]  # fmt: skip
     assert cli.main(argv) == 0
     printed = capsys.readouterr().out
     assert "[  10] warm" in printed and (out / "calibration.yaml").exists()
@@ -276,7 +313,7 @@ def test_cli_calibrate_incremental_on_a_detection_folder(tmp_path: Path, capsys)
     # the same options from a --config file (section incremental:); a flag still overrides it
     config = tmp_path / "calibrate.yaml"
     config.write_text("command: calibrate\nincremental: {idle_timeout: 0, poll_seconds: 0.1, tolerance: '5mrad,5mm'}\n")
-    base = [str(tmp_path / "cal2") if a == str(out) else a for a in argv[: argv.index("--idle-timeout")]]
+    base = [str(tmp_path / "cal2") if a == str(out) else a for a in argv[: argv.index("--blocking-solves")]]
     assert cli.main([*base, "--config", str(config)]) == 0
     summary = json.loads((tmp_path / "cal2" / "summary.json").read_text())
     assert summary["input"]["incremental"]["settings"]["idle_timeout_s"] == 0
@@ -293,7 +330,7 @@ def test_cli_calibrate_incremental_on_a_rendered_bag(tmp_path: Path, capsys) -> 
     common_args = [str(bag), "--camchain", str(camchain), "--target", str(target), "--joints", "2"]
     assert cli.main(["calibrate", *common_args, "--out", str(tmp_path / "inc"), "--incremental"]) == 0
     printed = capsys.readouterr().out
-    assert "global (first)" in printed and "no new snapshot" not in printed
+    assert "global (first" in printed and "no new snapshot" not in printed
     assert cli.main(["calibrate", *common_args, "--out", str(tmp_path / "batch")]) == 0
     inc = json.loads((tmp_path / "inc" / "summary.json").read_text())
     batch = json.loads((tmp_path / "batch" / "summary.json").read_text())

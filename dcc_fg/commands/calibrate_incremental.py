@@ -144,7 +144,12 @@ def incremental_options(
 ) -> IncrementalOptions:
     """The estimator's options from the calibrate configuration and the ``--incremental`` settings."""
     ranges = parse_range(settings.range, n_joints) if settings.range else None
-    return IncrementalOptions(solver=config.solver, ranges=ranges, tolerance=parse_tolerance(settings.tolerance))
+    return IncrementalOptions(
+        solver=config.solver,
+        ranges=ranges,
+        tolerance=parse_tolerance(settings.tolerance),
+        background=settings.background,
+    )
 
 
 def feed(
@@ -175,6 +180,11 @@ def feed(
                         continue
                 emit(update.line())
                 last_new = clock()
+            if inc is not None:  # a background solve that finished while no snapshot came
+                with DeferredInterrupt():
+                    adopted = inc.poll()
+                if adopted is not None:
+                    emit(adopted.line())
             if source.finished or clock() - last_new >= settings.idle_timeout:
                 if source.is_folder:
                     emit(f"no new snapshot for {settings.idle_timeout:g} s: stopping")
@@ -214,11 +224,24 @@ def run_incremental(
 
     with outputs:
         inc = feed(source, make, settings, emit, sleep=sleep)
-        if inc is None or not inc.solving:
-            got = 0 if inc is None else len(inc.snapshots)
+        if inc is None:
             why = f" (last reader message: {source.last_error})" if source.last_error else ""
-            raise ValueError(f"{inputs.data}: {got} usable snapshot(s) arrived, too few for a calibration{why}")
-        result = inc.finish()
+            raise ValueError(f"{inputs.data}: no usable snapshot arrived{why}")
+        try:
+            if not inc.solving:
+                adopted = inc.wait()  # a first solve still running in the background
+                if adopted is not None:
+                    emit(adopted.line())
+            if not inc.solving:
+                last = inc.updates[-1].reason if inc.updates else ""
+                why = f" ({last})" if last else ""
+                if source.last_error:
+                    why += f" (last reader message: {source.last_error})"
+                raise ValueError(f"{inputs.data}: {len(inc.snapshots)} usable snapshot(s) arrived, too few for a "
+                                 f"calibration or no first solution{why}")  # fmt: skip
+            result = inc.finish()
+        finally:
+            inc.close()
         data = inc.data
         report = {"min_common_points": config.reader.min_common_points, "corners": config.reader.corners}
         report.update(source.report)
@@ -249,6 +272,9 @@ def add_incremental_flags(c: argparse.ArgumentParser) -> None:
     opt(g, "--tolerance", "incremental.tolerance", metavar="ROT,TRANS", help="--incremental: largest acceptable "
         "worst-case 1-sigma of T_ds over the range, rotation (urad|mrad|rad|deg) and translation (um|mm|cm|m), "
         "default 1mrad,1mm")  # fmt: skip
+    opt(g, "--blocking-solves", "incremental.background", action="store_false",
+        help="--incremental: run the global solves inside the updates (default: in a background process, so "
+        "no update waits for one)")  # fmt: skip
     opt(g, "--range", "incremental.range", metavar="LO:HI,...", help="--incremental: operating range, degrees per "
         "joint (the calibration's joint-angle convention); default: the data's range plus a margin")  # fmt: skip
 
