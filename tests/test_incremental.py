@@ -303,8 +303,9 @@ def test_cli_calibrate_incremental_on_a_detection_folder(tmp_path: Path, capsys)
     camchain = tmp_path / "camchain.yaml"
     camchain.write_text(camchain_to_yaml(_camchain(data)))
     out = tmp_path / "cal"
-    argv = ["calibrate", str(root), "--camchain", str(camchain), "--joints", "2", "--out", str(out), "--incremental",
-            "--blocking-solves", "--idle-timeout", "0", "--poll-seconds", "0.1", "--tolerance", "5mrad,5mm"]  # fmt: skip
+    argv = ["calibrate", str(root), "--camchain", str(camchain), "--joints", "2", "--out", str(out),
+            "--incremental", "--blocking-solves", "--idle-timeout", "0", "--poll-seconds", "0.1",
+            "--tolerance", "5mrad,5mm"]  # fmt: skip
     assert cli.main(argv) == 0
     printed = capsys.readouterr().out
     assert "[  10] warm" in printed and (out / "calibration.yaml").exists()
