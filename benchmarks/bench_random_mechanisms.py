@@ -58,8 +58,9 @@ def member_line(r: MechanismRecord) -> str:
     """One line per member: costs, errors against the bound, NEES, times, failure."""
     status = "ok " if r.success and not r.failure else ("OK*" if r.success else "FAIL")
     return (
-        f"L={r.n_joints} seed={r.seed:<4d} {status} K={r.n_snapshots:<3d} cost auto {_fmt(r.auto.final_error, '.6g')} "
-        f"truth {_fmt(r.truth_start.final_error, '.6g')} | rot {_fmt(1e3 * r.rotation_rms)} mrad "
+        f"L={r.n_joints} seed={r.seed:<4d} {status} K={r.n_snapshots:<3d} "
+        f"data cost auto {_fmt(r.auto.data_cost, '.6g')} "
+        f"truth {_fmt(r.truth_start.data_cost, '.6g')} | rot {_fmt(1e3 * r.rotation_rms)} mrad "
         f"({_fmt(r.rotation_ratio)} x CRB) tra {_fmt(1e3 * r.translation_rms)} mm ({_fmt(r.translation_ratio)} x CRB) "
         f"| NEES {_fmt(r.nees_mean)} | sigma det {_fmt(r.sigma_detector_px)} px, truth excess chi2 "
         f"{_fmt(r.truth_excess_chi2)}/{r.truth_excess_dof} "

@@ -18,8 +18,10 @@ One *member* of the family (``seed``, ``L`` joints, ``K`` snapshots) goes throug
 
 Criteria (issue 14), per L over the family:
 
-* *global minimum*: ``cost_auto <= cost_truth * (1 + 1e-6) + 1e-9`` (GTSAM's 0.5 * sum of
-  whitened squares), i.e. the automatic result is within 1e-6 relative of the best of both starts
+* *global minimum*: ``cost_auto <= cost_truth * (1 + 1e-6) + 1e-9`` with the data costs (GTSAM's
+  0.5 * sum of whitened squared pixel residuals, :func:`dcc_fg.global_fit.data_cost`; the weak priors
+  on held directions sit at each start's own values, so the solvers' final errors, priors included,
+  do not compare), i.e. the automatic result is within 1e-6 relative of the best of both starts
   (``strict_success``), or both runs give the same ``T_ds`` for every snapshot within 0.1 sigma
   (``SAME_T_DS_M2``: weakly determined directions held by weak priors at each start's own values
   end a few 1e-6 apart in cost with the same answer); both counts are reported;
@@ -55,7 +57,7 @@ from scipy.stats import chi2
 from dcc_fg.calibrate import CalibrationOptions, CalibrationResult, calibrate
 from dcc_fg.calibration_health import calibration_health
 from dcc_fg.data import CalibrationDataset
-from dcc_fg.global_fit import T_ds_differences, calibrate_global
+from dcc_fg.global_fit import T_ds_differences, calibrate_global, data_cost
 from dcc_fg.io.outputs import plain
 from dcc_fg.model import GimbalCalibration
 from dcc_fg.sim.write_dataset import CalibrationSimSpec, load_ground_truth, write_calibration_dataset
@@ -128,7 +130,8 @@ def render_member(seed: int, n_joints: int, n_snapshots: int, out_dir: Path) -> 
 class RunOutcome:
     """One calibration run of a member: its cost, time and, if it failed, why."""
 
-    final_error: float = math.nan
+    final_error: float = math.nan  # the solver's final error, priors included
+    data_cost: float = math.nan  # pixel residuals only (dcc_fg.global_fit.data_cost)
     time_s: float = math.nan
     iterations: int = 0
     variance_factor: float = math.nan
@@ -257,6 +260,7 @@ def _run(fn: Any, data: CalibrationDataset, out: RunOutcome, health: bool) -> Ca
         return None
     out.time_s = time.perf_counter() - t0
     out.final_error = float(res.final_error)
+    out.data_cost = data_cost(res)
     out.iterations = int(res.iterations)
     out.variance_factor = float(res.variance_factor)
     if health:
@@ -332,10 +336,10 @@ def _study(rec: MechanismRecord, work_dir: Path, opt: CalibrationOptions) -> Non
     if res_truth is None:
         causes.append(f"truth start failed: {rec.truth_start.error}")
     if res_auto is not None:
-        best = rec.auto.final_error if res_truth is None else min(rec.auto.final_error, rec.truth_start.final_error)
+        best = rec.auto.data_cost if res_truth is None else min(rec.auto.data_cost, rec.truth_start.data_cost)
         rec.reference = "auto only" if res_truth is None else "best of both"
-        rec.cost_rel_excess = (rec.auto.final_error - best) / best if best > 0 else 0.0
-        rec.strict_success = bool(rec.auto.final_error <= best * (1.0 + COST_REL_TOL) + COST_ABS_TOL)
+        rec.cost_rel_excess = (rec.auto.data_cost - best) / best if best > 0 else 0.0
+        rec.strict_success = bool(rec.auto.data_cost <= best * (1.0 + COST_REL_TOL) + COST_ABS_TOL)
         if res_truth is not None and res_auto.T_ds_covariances is not None:
             diff = T_ds_differences(res_auto, res_truth)
             covs = res_auto.T_ds_covariances
@@ -344,7 +348,7 @@ def _study(rec: MechanismRecord, work_dir: Path, opt: CalibrationOptions) -> Non
         rec.success = rec.strict_success or bool(rec.T_ds_difference_m2_max < SAME_T_DS_M2)
         if not rec.success:
             causes.append(
-                f"local minimum: cost {rec.auto.final_error:.6g} vs truth start {rec.truth_start.final_error:.6g} "
+                f"local minimum: data cost {rec.auto.data_cost:.6g} vs truth start {rec.truth_start.data_cost:.6g} "
                 f"(+{100 * rec.cost_rel_excess:.3g} %), T_ds apart by up to "
                 f"{math.sqrt(rec.T_ds_difference_m2_max):.3g} sigma"
             )
