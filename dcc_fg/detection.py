@@ -17,7 +17,12 @@ Chessboards
     9x6) that makes the ids the same physical corners in every camera, however it is rolled.  A
     board whose two counts are both even or both odd is 180-degree symmetric *including its
     colours*; nothing in the image can tell its two orientations apart, so the ids of such a
-    board are only defined up to that rotation and a warning is logged.
+    board are only defined up to that rotation and a warning is logged.  When the outermost
+    corner row or column lies just outside the image, OpenCV's sector-based detector may return a
+    full grid shifted by one row onto the L-shaped corners at the board's edge (every id one row
+    off); such a grid is dropped: the ring of border squares one square beyond a true inner-corner
+    grid continues the colour pattern, the uniform margin beyond a shifted grid does not
+    (``_ring_matches``).
 
 AprilGrids (Kalibr)
     tag36h11 tags with a 2-bit black border, separated by gaps of ``tagSpacing * tagSize`` with
@@ -143,6 +148,71 @@ def _square_parity_dark(gray: UInt8Array, grid: FloatArray) -> bool:
     return bool(np.nanmean(vals[even]) < np.nanmean(vals[~even]))
 
 
+#: A side of the ring of border squares (one square beyond the corner grid) must match the board's
+#: colour pattern on at least this fraction of its squares inside the image (see _ring_matches).
+RING_MATCH_MIN = 0.75
+
+
+def _square_means(gray: UInt8Array, centres: FloatArray, side: float) -> FloatArray:
+    """Mean grey level of a patch (0.15 of the square side, at least 1 px) around each square centre
+    (..., 2) px; NaN where the patch is not entirely inside the image."""
+    half = max(1, int(0.15 * side))
+    h, w = gray.shape
+    out = np.full(centres.shape[:-1], np.nan)
+    for idx in np.ndindex(*centres.shape[:-1]):
+        u, v = np.round(centres[idx]).astype(int)
+        if half <= u < w - half and half <= v < h - half:
+            out[idx] = float(gray[v - half : v + half + 1, u - half : u + half + 1].mean())
+    return out
+
+
+def _extend(a: FloatArray, axis: int) -> FloatArray:
+    """``a`` with one more entry before and after along ``axis``: quadratic extrapolation from the
+    three outermost entries (follows the perspective foreshortening and the lens curvature over one
+    square), linear when there are only two."""
+    a = np.moveaxis(a, axis, 0)
+    if a.shape[0] >= 3:
+        lo, hi = 3 * a[0] - 3 * a[1] + a[2], 3 * a[-1] - 3 * a[-2] + a[-3]
+    else:
+        lo, hi = 2 * a[0] - a[1], 2 * a[-1] - a[-2]
+    return np.moveaxis(np.concatenate([lo[None], a, hi[None]]), 0, axis)
+
+
+def _ring_matches(gray: UInt8Array, grid: FloatArray) -> bool:
+    """Whether the corner grid (rows, cols, 2) is the board's inner-corner grid and not one shifted
+    by a row or column onto the board's edge (which OpenCV returns when the outermost corner row lies
+    outside the image: the L-shaped corners between the last squares and the white margin then stand
+    in for it, and every id is off by one row).
+
+    A chessboard with C x R inner corners has (C + 1) x (R + 1) squares, so one square beyond the grid
+    on every side there is a ring of squares that continue the colour pattern. The grid is extended by
+    one corner on each side (:func:`_extend`), every ring square inside the image is classified dark
+    (below 30 % of the way from the dark to the light mean of the squares inside the grid) or light
+    (above 70 %; a sample in between straddles a square's edge and is not used), and each side with at
+    least two classified squares must match the pattern on at least ``RING_MATCH_MIN`` of them; beyond a
+    shifted grid's edge lies the uniform margin, which matches on about half."""
+    if grid.shape[0] < 2 or grid.shape[1] < 2:
+        return True  # a single row or column: no square inside the grid to compare with
+    ext = _extend(_extend(grid, 0), 1)
+    centres = 0.25 * (ext[:-1, :-1] + ext[1:, :-1] + ext[:-1, 1:] + ext[1:, 1:])  # (rows + 1, cols + 1, 2)
+    side = float(np.median(np.linalg.norm(grid[:, 1:] - grid[:, :-1], axis=2)))
+    vals = _square_means(gray, centres, side)
+    rr, cc = np.meshgrid(np.arange(centres.shape[0]), np.arange(centres.shape[1]), indexing="ij")
+    even = (rr + cc) % 2 == 0
+    inner, inner_even = vals[1:-1, 1:-1], even[1:-1, 1:-1]
+    m_even, m_odd = np.nanmean(inner[inner_even]), np.nanmean(inner[~inner_even])
+    if not (np.isfinite(m_even) and np.isfinite(m_odd)):
+        return True  # the squares inside the grid are not in the image (cannot happen for a found grid)
+    frac = (vals - m_even) / (m_odd - m_even)  # 0: the even squares' shade, 1: the odd squares'
+    classified = (frac < 0.3) | (frac > 0.7)
+    matches = (frac < 0.5) == even
+    for ring in (np.s_[0, :], np.s_[-1, :], np.s_[:, 0], np.s_[:, -1]):
+        seen = classified[ring]
+        if seen.sum() >= 2 and matches[ring][seen].mean() < RING_MATCH_MIN:
+            return False
+    return True
+
+
 def _refine_checkerboard(gray: UInt8Array, corners: NDArray[np.float32], target: TargetGeometry) -> NDArray[np.float32]:
     """``cv2.cornerSubPix`` on checkerboard corners (N, 1, 2), half window 0.2 of the median square
     side in pixels (2 to 11)."""
@@ -189,6 +259,9 @@ def detect_checkerboard(image: NDArray[np.generic], target: TargetGeometry) -> O
     d_row = grid[1:, :-1] - grid[:-1, :-1]
     if np.mean(d_col[..., 0] * d_row[..., 1] - d_col[..., 1] * d_row[..., 0]) < 0:
         grid = grid[::-1]
+    if not _ring_matches(gray, grid):
+        log.debug("checkerboard corners shifted onto the board's edge (outermost corners outside the image): dropped")
+        return Observation(np.zeros(0, dtype=np.int64), np.zeros((0, 2)))
     if checkerboard_is_symmetric(target.cols, target.rows):
         log.warning(
             "checkerboard %dx%d is 180-degree symmetric (colours included): its corner ids are only "

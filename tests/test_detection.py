@@ -26,6 +26,7 @@ from dcc_fg.detection import (
 from dcc_fg.sim.mechanism_family import family_member, simulate_member
 from dcc_fg.sim.render import RenderConfig, make_texture, render_view
 from dcc_fg.targets import TargetGeometry
+from factors.camera import CameraModel
 
 # ---------------------------------------------------------------------------------------------
 # Synthetic renderings (4x supersampled; pixel centres at integer coordinates like OpenCV)
@@ -375,3 +376,77 @@ def test_checkerboard_fallback_detector_is_refined(monkeypatch) -> None:  # noqa
         assert np.sqrt(np.mean(err**2)) < 0.06, np.sqrt(np.mean(err**2))
         means.append(np.abs(err.mean(axis=0)).max())
     assert max(means) < 0.02, means
+
+
+# A board whose outermost inner-corner row is just above the image (a plan's view with the 2 cm / 2 deg
+# error of a person holding it, from the random family's member 7, bench_plan.py): OpenCV's sector-based
+# detector then returns a full grid shifted by one row onto the L-shaped corners at the board's edge.
+_CUT_CAMERA = CameraModel(
+    (740.385, 740.947, 361.009, 234.964), "radtan", (-0.111, -0.0211, 1.85e-4, -5.81e-4), (752, 480)
+)
+_CUT_T_CT = np.array(
+    [[0.98487, 0.08101, -0.15321, -0.30536], [-0.10108, 0.98659, -0.12812, -0.33665],
+     [0.14078, 0.14167, 0.97985, 1.01883], [0.0, 0.0, 0.0, 1.0]]
+)  # fmt: skip
+
+
+def _true_pixels(camera: CameraModel, T_ct: np.ndarray, points: np.ndarray) -> np.ndarray:
+    p = (T_ct[:3, :3] @ points.T).T + T_ct[:3, 3]
+    uv, _ = camera.project(p, jacobian=False)
+    return uv
+
+
+@pytest.mark.parametrize("dy", [-0.004, 0.0, 0.004])
+def test_a_checkerboard_grid_shifted_onto_the_board_edge_is_dropped(dy: float, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The true top corner row is outside the image: without the ring check the detector returns 56
+    corners one row off (the ids of every corner wrong by ~one square); with it, nothing."""
+    target = TargetGeometry.checkerboard(8, 7, 0.038)
+    T = _CUT_T_CT.copy()
+    U, _, Vt = np.linalg.svd(T[:3, :3])
+    T[:3, :3] = U @ Vt
+    T[1, 3] += dy
+    uv = _true_pixels(_CUT_CAMERA, T, target.points)
+    assert uv[:, 1].min() < -5  # the outermost corner row is not in the image
+    wrong = 0
+    for seed in (1, 2):
+        image = render_view(_CUT_CAMERA, T, make_texture(target), RenderConfig(), np.random.default_rng(seed))
+        assert len(detect_checkerboard(image, target)) == 0
+        with monkeypatch.context() as m:  # the same image without the check: wrong ids (what the check is for)
+            m.setattr(detection, "_ring_matches", lambda gray, grid: True)
+            obs = detect_checkerboard(image, target)
+        wrong += len(obs) > 0 and np.linalg.norm(uv[obs.ids] - obs.pixels, axis=1).max() > 10
+    assert wrong >= 1
+
+
+def test_the_ring_check_keeps_boards_in_view() -> None:
+    """Random tilted views with every square of the board inside the image, radtan and equidistant
+    lenses: every board is found with the right ids (the ring of border squares matches)."""
+    rng = np.random.default_rng(11)
+    target = TargetGeometry.checkerboard(8, 7, 0.04)
+    texture = make_texture(target)
+    cams = [
+        CameraModel((420.0, 420.0, 375.5, 239.5), "radtan", (-0.12, 0.02, 0.0, 0.0), (752, 480)),
+        CameraModel((380.0, 380.0, 319.5, 239.5), "equidistant", (0.02, -0.01, 0.004, -0.001), (640, 480)),
+    ]
+    corners = np.array([[-1, -1], [target.cols, -1], [-1, target.rows], [target.cols, target.rows]]) * 0.04
+    outline = np.c_[corners, np.zeros(4)]  # the outer corners of the border squares
+    found = 0
+    tried = 0
+    while tried < 24:
+        cam = cams[tried % 2]
+        R = cv2.Rodrigues(rng.normal(scale=0.35, size=3))[0]
+        z = rng.uniform(0.5, 0.9)
+        xy = rng.uniform(-0.15, 0.15, size=2) * z
+        T = np.eye(4)
+        T[:3, :3] = R
+        T[:3, 3] = np.r_[xy, z] - R @ target.points.mean(axis=0)
+        box = _true_pixels(cam, T, outline)
+        w, h = cam.resolution
+        if not ((box > 3).all() and (box[:, 0] < w - 3).all() and (box[:, 1] < h - 3).all()):
+            continue
+        tried += 1
+        obs = detect_checkerboard(render_view(cam, T, texture, RenderConfig(), rng), target)
+        if len(obs):
+            found += 1
+            assert np.linalg.norm(_true_pixels(cam, T, target.points)[obs.ids] - obs.pixels, axis=1).max() < 1.0
+    assert found == tried
