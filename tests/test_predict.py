@@ -4,6 +4,7 @@ calibration's, and the predicted covariance against true errors at held-out join
 
 from __future__ import annotations
 
+from dataclasses import replace
 from functools import lru_cache
 
 import gtsam
@@ -71,6 +72,23 @@ def test_view_information_matches_numerical_differentiation() -> None:
     expected = H[:6, :6] - H[:6, 6:] @ np.linalg.solve(H[6:, 6:], H[6:, :6])
     got = view_information(view, T_ds, pl)[0]
     assert np.allclose(got, expected, rtol=1e-5, atol=1e-6 * np.abs(expected).max())
+
+
+def test_a_view_with_no_corner_seen_has_no_information() -> None:
+    """Joint angles where no target pose shows a corner to either camera (e.g. a held-out angle just
+    beyond the range): zero information for that view, not a singular-matrix error (it crashed
+    bench_plan.py's member 2); the other views are unchanged."""
+    truth = true_kinematics(2)
+    view = pinned_view()
+    T_ds = np.stack([truth.T_ds(np.array(a) * DEG) for a in ([95.0, 5.0], [100.0, 0.0])])
+    pl = place_targets(view, T_ds)
+    both = view_information(view, T_ds, pl)
+    blind = replace(pl, seen_s=pl.seen_s.copy(), seen_d=pl.seen_d.copy())
+    blind.seen_s[1] = False
+    blind.seen_d[1] = False
+    got = view_information(view, T_ds, blind)
+    assert np.all(got[1] == 0.0)
+    assert np.allclose(got[0], both[0], rtol=1e-12, atol=0.0)
 
 
 @pytest.mark.parametrize("L", [1, 2, 3])

@@ -238,7 +238,10 @@ def view_information(view: ViewModel, T_ds: FloatArray, placement: Placement) ->
     H_xx = _gram(J_xi, J_xi)
     H_xe = _gram(J_xi, J_eta_d)
     H_ee = _gram(J_eta_s, J_eta_s) + _gram(J_eta_d, J_eta_d)
-    H_ee += 1e-12 * np.eye(6) * np.trace(H_ee, axis1=1, axis2=2)[:, None, None]  # a view seen by one camera only
+    # a view seen by one camera only: a tiny regularization; seen by neither (no corner in view at
+    # that pose): H_xe = 0 as well, so any positive value gives the view no information, not an error
+    tr = np.trace(H_ee, axis1=1, axis2=2)
+    H_ee += np.eye(6) * np.where(tr > 0, 1e-12 * tr, 1.0)[:, None, None]
     Lam = H_xx - H_xe @ np.linalg.solve(H_ee, np.swapaxes(H_xe, 1, 2))
     return 0.5 * (Lam + np.swapaxes(Lam, 1, 2))
 
