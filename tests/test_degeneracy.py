@@ -142,8 +142,8 @@ def test_spherical_wrist_is_calibrated_with_held_directions(tmp_path: Path) -> N
     # One seed is one draw: its 24 snapshots share the kinematic error, so the RMS ratio of one member
     # spreads widely (seeds 1-7 of this scene: 0.67-1.73x rotation, pooled 1.31x, before the polish with
     # the weakened prior). This seed measures 1.86x (rotation) / 2.28x (translation) after that polish
-    # (1.62x / 1.97x with the full-strength prior, which sits at the truth here because the start is
-    # the truth; the polish lets the weakly determined directions fit the noise). The exactly
+    # (1.62x / 1.97x with the full-strength prior at the start, which here is near the truth; the
+    # polish lets the weakly determined directions fit the noise). The exactly
     # intersecting members of the random family stay at about 2x the bound (README, Limitations); this
     # test bounds one draw at 2.5x.
     assert rot <= 2.5 * crb.rotation_rms and tr <= 2.5 * crb.translation_rms, (rot, crb.rotation_rms, tr)
