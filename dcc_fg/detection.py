@@ -127,42 +127,17 @@ def checkerboard_is_symmetric(cols: int, rows: int) -> bool:
     return (cols + rows) % 2 == 0
 
 
-def _square_parity_dark(gray: UInt8Array, grid: FloatArray) -> bool:
-    """True if the squares with even ``col + row`` inside the corner grid are the darker ones.
-
-    ``grid`` is (rows, cols, 2) corner pixels; square (c, r) lies between corners (c, r) and
-    (c + 1, r + 1) and is sampled at its centre (mean of its four corners) over a small patch.
-    """
-    centres = 0.25 * (grid[:-1, :-1] + grid[1:, :-1] + grid[:-1, 1:] + grid[1:, 1:])
-    side = float(np.median(np.linalg.norm(grid[:, 1:] - grid[:, :-1], axis=2)))
-    half = max(1, int(0.15 * side))
-    h, w = gray.shape
-    rr, cc = np.meshgrid(np.arange(centres.shape[0]), np.arange(centres.shape[1]), indexing="ij")
-    vals = np.empty(centres.shape[:2])
-    for r in range(centres.shape[0]):
-        for c in range(centres.shape[1]):
-            u, v = np.round(centres[r, c]).astype(int)
-            patch = gray[max(0, v - half) : min(h, v + half + 1), max(0, u - half) : min(w, u + half + 1)]
-            vals[r, c] = float(patch.mean()) if patch.size else np.nan
-    even = (rr + cc) % 2 == 0
-    return bool(np.nanmean(vals[even]) < np.nanmean(vals[~even]))
-
-
-#: A side of the ring of border squares (one square beyond the corner grid) must match the board's
-#: colour pattern on at least this fraction of its squares inside the image (see _ring_matches).
-RING_MATCH_MIN = 0.75
-
-
 def _square_means(gray: UInt8Array, centres: FloatArray, side: float) -> FloatArray:
-    """Mean grey level of a patch (0.15 of the square side, at least 1 px) around each square centre
-    (..., 2) px; NaN where the patch is not entirely inside the image."""
+    """Mean grey level of a small patch (half width 0.15 of the square ``side``, at least 1 px; clipped
+    to the image) around each square centre (..., 2) px; NaN where the patch is empty."""
     half = max(1, int(0.15 * side))
     h, w = gray.shape
     out = np.full(centres.shape[:-1], np.nan)
     for idx in np.ndindex(*centres.shape[:-1]):
         u, v = np.round(centres[idx]).astype(int)
-        if half <= u < w - half and half <= v < h - half:
-            out[idx] = float(gray[v - half : v + half + 1, u - half : u + half + 1].mean())
+        patch = gray[max(0, v - half) : min(h, v + half + 1), max(0, u - half) : min(w, u + half + 1)]
+        if patch.size:
+            out[idx] = float(patch.mean())
     return out
 
 
@@ -178,32 +153,66 @@ def _extend(a: FloatArray, axis: int) -> FloatArray:
     return np.moveaxis(np.concatenate([lo[None], a, hi[None]]), 0, axis)
 
 
-def _ring_matches(gray: UInt8Array, grid: FloatArray) -> bool:
-    """Whether the corner grid (rows, cols, 2) is the board's inner-corner grid and not one shifted
-    by a row or column onto the board's edge (which OpenCV returns when the outermost corner row lies
-    outside the image: the L-shaped corners between the last squares and the white margin then stand
-    in for it, and every id is off by one row).
-
-    A chessboard with C x R inner corners has (C + 1) x (R + 1) squares, so one square beyond the grid
-    on every side there is a ring of squares that continue the colour pattern. The grid is extended by
-    one corner on each side (:func:`_extend`), every ring square inside the image is classified dark
-    (below 30 % of the way from the dark to the light mean of the squares inside the grid) or light
-    (above 70 %; a sample in between straddles a square's edge and is not used), and each side with at
-    least two classified squares must match the pattern on at least ``RING_MATCH_MIN`` of them; beyond a
-    shifted grid's edge lies the uniform margin, which matches on about half."""
-    if grid.shape[0] < 2 or grid.shape[1] < 2:
-        return True  # a single row or column: no square inside the grid to compare with
+def _board_squares(gray: UInt8Array, grid: FloatArray) -> FloatArray:
+    """(rows + 1, cols + 1) mean grey levels of the squares of a corner grid (rows, cols, 2) px: square
+    (r, c) of the result lies between extended corners (r - 1, c - 1) and (r, c), so ``[1:-1, 1:-1]``
+    are the squares inside the grid (sampled at the mean of their four corners) and the border is the
+    ring of squares one square beyond it (the grid extended by :func:`_extend`); NaN for a ring square
+    whose centre is outside the image. Square (r, c) has parity ``r + c`` as its inner index does."""
+    if grid.shape[0] < 2 or grid.shape[1] < 2:  # a single row or column: no square inside the grid
+        return np.full((grid.shape[0] + 1, grid.shape[1] + 1), np.nan)
     ext = _extend(_extend(grid, 0), 1)
-    centres = 0.25 * (ext[:-1, :-1] + ext[1:, :-1] + ext[:-1, 1:] + ext[1:, 1:])  # (rows + 1, cols + 1, 2)
+    centres = 0.25 * (ext[:-1, :-1] + ext[1:, :-1] + ext[:-1, 1:] + ext[1:, 1:])
     side = float(np.median(np.linalg.norm(grid[:, 1:] - grid[:, :-1], axis=2)))
     vals = _square_means(gray, centres, side)
-    rr, cc = np.meshgrid(np.arange(centres.shape[0]), np.arange(centres.shape[1]), indexing="ij")
-    even = (rr + cc) % 2 == 0
-    inner, inner_even = vals[1:-1, 1:-1], even[1:-1, 1:-1]
+    h, w = gray.shape
+    u, v = np.round(centres[..., 0]).astype(int), np.round(centres[..., 1]).astype(int)
+    outside = (u < 0) | (u >= w) | (v < 0) | (v >= h)
+    outside[1:-1, 1:-1] = False  # the squares inside the grid are sampled as they are
+    vals[outside] = np.nan
+    return vals
+
+
+def _parity(shape: tuple[int, ...]) -> NDArray[np.bool_]:
+    """True where ``row + col`` is even."""
+    rr, cc = np.meshgrid(np.arange(shape[0]), np.arange(shape[1]), indexing="ij")
+    return (rr + cc) % 2 == 0
+
+
+def _square_parity_dark(squares: FloatArray) -> bool:
+    """True if the squares with even ``col + row`` inside the corner grid are the darker ones
+    (``squares``: :func:`_board_squares`)."""
+    inner = squares[1:-1, 1:-1]
+    even = _parity(inner.shape)
+    return bool(np.nanmean(inner[even]) < np.nanmean(inner[~even]))
+
+
+#: A side of the ring of border squares (one square beyond the corner grid) must match the board's
+#: colour pattern on at least this fraction of its squares inside the image (see _ring_matches).
+RING_MATCH_MIN = 0.75
+
+
+def _ring_matches(squares: FloatArray) -> bool:
+    """Whether the corner grid is the board's inner-corner grid and not one shifted by a row or column
+    onto the board's edge (which OpenCV returns when the outermost corner row lies outside the image:
+    the L-shaped corners between the last squares and the white margin then stand in for it, and
+    every id is off by one row). ``squares``: :func:`_board_squares` of the grid.
+
+    A chessboard with C x R inner corners has (C + 1) x (R + 1) squares, so one square beyond the grid
+    on every side there is a ring of squares that continue the colour pattern. Every ring square
+    inside the image is classified dark (below 30 % of the way from the dark to the light mean of the
+    squares inside the grid) or light (above 70 %; a sample in between straddles a square's edge and
+    is not used), and each side with at least two classified squares must match the pattern on at
+    least ``RING_MATCH_MIN`` of them; beyond a shifted grid's edge lies the uniform margin, which
+    matches on about half."""
+    even = _parity(squares.shape)
+    inner, inner_even = squares[1:-1, 1:-1], even[1:-1, 1:-1]
+    if inner.size == 0 or not np.isfinite(inner).any():
+        return True  # no square inside the grid to compare with (a single row or column)
     m_even, m_odd = np.nanmean(inner[inner_even]), np.nanmean(inner[~inner_even])
     if not (np.isfinite(m_even) and np.isfinite(m_odd)):
-        return True  # the squares inside the grid are not in the image (cannot happen for a found grid)
-    frac = (vals - m_even) / (m_odd - m_even)  # 0: the even squares' shade, 1: the odd squares'
+        return True  # a single square inside the grid: no contrast to compare with
+    frac = (squares - m_even) / (m_odd - m_even)  # 0: the even squares' shade, 1: the odd squares'
     classified = (frac < 0.3) | (frac > 0.7)
     matches = (frac < 0.5) == even
     for ring in (np.s_[0, :], np.s_[-1, :], np.s_[:, 0], np.s_[:, -1]):
@@ -259,7 +268,8 @@ def detect_checkerboard(image: NDArray[np.generic], target: TargetGeometry) -> O
     d_row = grid[1:, :-1] - grid[:-1, :-1]
     if np.mean(d_col[..., 0] * d_row[..., 1] - d_col[..., 1] * d_row[..., 0]) < 0:
         grid = grid[::-1]
-    if not _ring_matches(gray, grid):
+    squares = _board_squares(gray, grid)
+    if not _ring_matches(squares):
         log.debug("checkerboard corners shifted onto the board's edge (outermost corners outside the image): dropped")
         return Observation(np.zeros(0, dtype=np.int64), np.zeros((0, 2)))
     if checkerboard_is_symmetric(target.cols, target.rows):
@@ -269,7 +279,7 @@ def detect_checkerboard(image: NDArray[np.generic], target: TargetGeometry) -> O
             target.cols,
             target.rows,
         )
-    elif not _square_parity_dark(gray, grid):
+    elif not _square_parity_dark(squares):
         # Even-parity squares are white: corner 0's outer diagonal square (parity of (-1, -1),
         # i.e. even) is white, so the opposite corner is the canonical corner 0.
         grid = grid[::-1, ::-1]

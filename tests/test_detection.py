@@ -412,7 +412,7 @@ def test_a_checkerboard_grid_shifted_onto_the_board_edge_is_dropped(dy: float, m
         image = render_view(_CUT_CAMERA, T, make_texture(target), RenderConfig(), np.random.default_rng(seed))
         assert len(detect_checkerboard(image, target)) == 0
         with monkeypatch.context() as m:  # the same image without the check: wrong ids (what the check is for)
-            m.setattr(detection, "_ring_matches", lambda gray, grid: True)
+            m.setattr(detection, "_ring_matches", lambda squares: True)
             obs = detect_checkerboard(image, target)
         wrong += len(obs) > 0 and np.linalg.norm(uv[obs.ids] - obs.pixels, axis=1).max() > 10
     assert wrong >= 1
