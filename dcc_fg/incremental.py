@@ -376,7 +376,7 @@ class IncrementalCalibration:
     @property
     def data(self) -> CalibrationDataset:
         """The snapshots so far as a dataset."""
-        return replace(self._template, snapshots=list(self.snapshots))
+        return self._data_upto(len(self.snapshots))
 
     def _data_upto(self, n: int) -> CalibrationDataset:
         """The first ``n`` snapshots as a dataset."""
@@ -533,11 +533,10 @@ class IncrementalCalibration:
         if self._pool is None:
             ctx = multiprocessing.get_context("forkserver")
             self._pool = ProcessPoolExecutor(max_workers=1, mp_context=ctx)
-        snaps = list(self.snapshots)
-        data = replace(self._template, snapshots=snaps)
+        data = self.data
         future = self._pool.submit(solve_global, data, self.n_joints, self._solve_opts(), self.initial)
-        self._pending = _Pending(future, reason, snaps)
-        self._last_global = len(snaps)
+        self._pending = _Pending(future, reason, data.snapshots)
+        self._last_global = len(data.snapshots)
 
     def _adopt(self, wait: bool) -> str:
         """Adopt a finished background solve (``wait``: wait for a running one): rebuild the graph at
