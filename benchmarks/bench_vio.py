@@ -21,8 +21,12 @@ locked at its mid position for ``scc``. Rendering is not timed. Then, in this pr
 
 Machines here are shared and noisy: compare the ratios, not the absolute times.
 
+* with ``--smart``: ``dcc`` again with structureless landmarks (``VioOptions(landmarks="smart")``, one
+  GTSAM smart projection factor per landmark): wall time, main-process CPU and accuracy over the explicit
+  landmarks' front-end-process run.
+
 Usage: ``python benchmarks/bench_vio.py [--duration 60] [--seed 0] [--keep DIR] [--no-baseline]
-[--cluster stereo+gimbal]``
+[--smart] [--cluster stereo+gimbal]``
 """
 
 from __future__ import annotations
@@ -70,7 +74,9 @@ def _flight(folder: Path, cfg: FlightConfig, seed: int, moving: bool) -> FlightB
     return fb
 
 
-def run_mode(fb: FlightBag, mode: str, parallel: bool, estimate_offsets: bool = True) -> dict[str, Any]:
+def run_mode(
+    fb: FlightBag, mode: str, parallel: bool, estimate_offsets: bool = True, landmarks: str = "explicit"
+) -> dict[str, Any]:
     """One ``dcc`` or ``scc`` run over a rendered flight bag, timed and scored."""
     cal, imu = load_flight_calibration(fb.calibration)
     focal = float(cal.static_camera.intrinsics[0])  # type: ignore[union-attr]
@@ -78,7 +84,12 @@ def run_mode(fb: FlightBag, mode: str, parallel: bool, estimate_offsets: bool = 
     if mode == "scc":
         fixed = tuple(yaml.safe_load(fb.calibration.read_text())["flight"]["joints_locked"])
     opts = VioOptions(
-        mode=mode, sigma=1.0 / focal, keyframe_every=3, theta_fixed=fixed, estimate_time_offsets=estimate_offsets
+        mode=mode,
+        sigma=1.0 / focal,
+        keyframe_every=3,
+        theta_fixed=fixed,
+        estimate_time_offsets=estimate_offsets,
+        landmarks=landmarks,
     )
     t0 = time.perf_counter()
     c0 = time.process_time()
@@ -90,6 +101,7 @@ def run_mode(fb: FlightBag, mode: str, parallel: bool, estimate_offsets: bool = 
     offsets = res.stats["time_offsets"]
     return {
         "mode": mode,
+        "landmarks": landmarks,
         "parallel": parallel,
         "estimate_offsets": estimate_offsets,
         "time_offsets_ms": [1e3 * offsets["static_s"], 1e3 * offsets.get("dynamic_s", 0.0)],
@@ -112,6 +124,8 @@ def _line(r: dict[str, Any]) -> str:
     kind = "front-end process" if r["parallel"] else "inline (baseline)"
     if not r["estimate_offsets"]:
         kind = "offsets held at 0"
+    if r["landmarks"] != "explicit":
+        kind = f"{r['landmarks']} landmarks"
     cpu = f"CPU {r['cpu_s']:.1f} s" + (
         f" + front-end process {r['frontend_process_cpu_s']:.1f} s" if r["frontend_process_cpu_s"] is not None else ""
     )
@@ -129,6 +143,9 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     p.add_argument("--keep", help="write the flights into this folder (default: a temporary one)")
     p.add_argument("--no-baseline", action="store_true", help="skip the inline front-end runs")
     p.add_argument("--no-offsets-baseline", action="store_true", help="skip the runs with the time offsets held")
+    p.add_argument(
+        "--smart", action="store_true", help="also run dcc with structureless (smart-factor) landmarks and compare"
+    )
     p.add_argument("--cluster", help="also run this N-camera cluster preset's flight (e.g. stereo+gimbal)")
     a = p.parse_args(argv)
     with tempfile.TemporaryDirectory() as tmp:
@@ -171,6 +188,21 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                     f"{mode}: offsets estimated / held at 0: wall time {t_ratio:.2f}, translation RMSE {e_ratio:.2f} "
                     f"(estimates {est['time_offsets_ms'][0]:.2f}, {est['time_offsets_ms'][1]:.2f} ms; truth 0)"
                 )
+        if a.smart:
+            smart = run_mode(flights["dcc"], "dcc", True, landmarks="smart")
+            out["smart"] = smart
+            print(_line(smart))
+            ref = runs[("dcc", True)]
+            out["dcc_smart_over_explicit_time"] = smart["wall_s"] / ref["wall_s"]
+            out["dcc_smart_over_explicit_cpu"] = smart["cpu_s"] / ref["cpu_s"]
+            out["dcc_smart_over_explicit_rmse"] = (
+                smart["normalized_translation_rmse_percent"] / ref["normalized_translation_rmse_percent"]
+            )
+            print(
+                f"dcc: smart / explicit landmarks: wall time {out['dcc_smart_over_explicit_time']:.2f}, main-process "
+                f"CPU {out['dcc_smart_over_explicit_cpu']:.2f}, "
+                f"translation RMSE {out['dcc_smart_over_explicit_rmse']:.2f}"
+            )
         if a.cluster:
             bag, calibration = cluster_bench.render(root / "cluster", a.cluster, cfg, a.seed)
             every, two = cluster_bench.run(bag, calibration, None), cluster_bench.run(bag, calibration, ())

@@ -264,6 +264,19 @@ class LandmarkMap:
         """Whether two rigid cameras saw the track in keyframe ``k``."""
         return len(self.rigid) > 1 and len({ob[1] for ob in obs if ob[0] == k and ob[1] in self.rigid}) >= 2
 
+    def refresh_from(self, positions: dict[int, FloatArray], cutoff_ns: int) -> list[int]:
+        """Structureless landmarks: positions (W, m) from their factors' triangulation where there is one;
+        forget (and return) the landmarks last seen before ``cutoff_ns``."""
+        gone = []
+        for tid, lm in list(self.active.items()):
+            if lm in positions:
+                self.position[lm] = positions[lm]
+            if self.last_seen_ns[lm] < cutoff_ns:
+                del self.active[tid]
+                self.position.pop(lm, None)
+                gone.append(lm)
+        return gone
+
     def refresh(self, estimate: gtsam.Values, cutoff_ns: int) -> None:
         """Positions from the smoother's estimate; forget landmarks that left it or were last seen
         before ``cutoff_ns``."""

@@ -18,6 +18,7 @@ IntArray = NDArray[np.int64]
 NS = 1_000_000_000
 MODES = ("dcc", "scc", "mono")
 INITIALIZATIONS = ("auto", "standstill", "motion")
+LANDMARKS = ("explicit", "smart")
 #: Largest |time offset| accepted as a start value, s.
 MAX_TIME_OFFSET_S = 0.5
 
@@ -64,6 +65,15 @@ class VioOptions:
     covariance of ``t(k)`` at the last update before the keyframe leaves the window (the estimate the
     result keeps is from the same update), in ``VioResult.theta_sigma`` and ``joint_angles_sigma.csv``;
     one marginal covariance per keyframe costs about as much as the update itself (off by default).
+
+    ``landmarks``: ``explicit`` (a Point3 variable per landmark with Huber-robust reprojection factors) or
+    ``smart`` (structureless: one GTSAM smart projection factor per landmark, the point eliminated inside
+    it, :mod:`~dcc_fg.vio.backend.structureless`; isotropic noise, no robust loss, so observations are gated
+    at ``smart_observation_gate`` sigmas instead of ``observation_gate``: on the 60 s rendered flight a gate
+    of 8 sigmas let outliers through and the run diverged, 4-5 sigmas did not). ``smart`` needs every
+    observation on an identity-mount camera pose: the incremental smoother, estimated time offsets that
+    stay estimated (``time_offset_freeze_sigma`` None), ``gimbal_factor='camera_pose'`` and no further
+    cameras.
     """
 
     mode: str = "dcc"
@@ -116,6 +126,8 @@ class VioOptions:
     initialization: str = "auto"
     motion_init_window: float = 1.0
     motion_init_max_window: float = 3.0
+    landmarks: str = "explicit"
+    smart_observation_gate: float = 5.0
 
     def __post_init__(self) -> None:
         if self.initialization not in INITIALIZATIONS:
@@ -124,6 +136,19 @@ class VioOptions:
             raise ValueError(f"mode '{self.mode}' is not one of {', '.join(MODES)}")
         if self.smoother not in ("incremental", "batch"):
             raise ValueError(f"smoother '{self.smoother}' is not one of incremental, batch")
+        if self.landmarks not in LANDMARKS:
+            raise ValueError(f"landmarks '{self.landmarks}' is not one of {', '.join(LANDMARKS)}")
+        if self.landmarks == "smart" and (
+            self.smoother != "incremental"
+            or not self.estimate_time_offsets
+            or self.time_offset_freeze_sigma is not None
+            or self.gimbal_factor != "camera_pose"
+        ):
+            raise ValueError(
+                "landmarks 'smart' needs smoother 'incremental', estimate_time_offsets, no "
+                "time_offset_freeze_sigma and gimbal_factor 'camera_pose' (every observation on a camera pose); "
+                "use landmarks 'explicit' with these settings"
+            )
         if self.keyframe_every < 1 or self.lag <= 0 or self.sigma <= 0:
             raise ValueError("keyframe_every >= 1, lag > 0 and sigma > 0 are required")
         for name in (
@@ -136,6 +161,7 @@ class VioOptions:
             "time_offset_prior_sigma",
             "motion_init_window",
             "motion_init_max_window",
+            "smart_observation_gate",
         ):
             value = getattr(self, name)
             if not (np.isfinite(value) and value > 0):
@@ -154,6 +180,11 @@ class VioOptions:
                 f"time_offsets {self.time_offsets!r} s: larger than {MAX_TIME_OFFSET_S} s in magnitude; an offset "
                 "that large is a clock problem (different time bases), not a camera delay: fix the stamps"
             )
+
+    @property
+    def gate(self) -> float:
+        """Largest predicted reprojection error (sigmas) of an observation the smoother uses."""
+        return self.observation_gate if self.landmarks == "explicit" else self.smart_observation_gate
 
     @property
     def offsets(self) -> tuple[float, float]:

@@ -53,8 +53,15 @@ class CameraResiduals:
         if cam in self.focal:
             self.norms[cam].append(float(error) * self.focal[cam])
 
-    def evaluate(self, values: gtsam.Values) -> None:
-        """The kept factors' residual norms (px) at ``values`` (the estimate after the update)."""
+    def evaluate(self, values: gtsam.Values, points: dict[int, FloatArray] | None = None) -> None:
+        """The kept factors' residual norms (px) at ``values`` (the estimate after the update); ``points``:
+        landmark key -> position (W, m) of landmarks that are not variables (structureless)."""
+        if points:
+            values = gtsam.Values(values)
+            for f in (f for factors in self.pending.values() for f in factors):
+                for key in f.keys():
+                    if key in points and not values.exists(key):
+                        values.insert(key, points[key])
         for cam, factors in self.pending.items():
             for f in factors:
                 if all(values.exists(key) for key in f.keys()):

@@ -53,6 +53,7 @@ from dcc_fg.vio.backend.landmarks import LandmarkMap, prediction_error
 from dcc_fg.vio.backend.options import NS, FloatArray, InitialState, VioOptions, VioResult
 from dcc_fg.vio.backend.residuals import CameraResiduals
 from dcc_fg.vio.backend.state import KeyframeState, result_from_states
+from dcc_fg.vio.backend.structureless import StructurelessLandmarks
 from dcc_fg.vio.backend.window import AnchorSigmas, FixedLagWindow, anchor_factors, window_start_ns
 from dcc_fg.vio.backend.zupt import static_tracks_at_rest, zero_velocity_factors
 from dcc_fg.vio.joint_init import fit_joint_angles
@@ -103,6 +104,11 @@ class VioSmoother:
         self.exposure = ExposureModel(options, imu, self._mounts())
         self.window = FixedLagWindow(options)
         self.landmarks = LandmarkMap(frozenset(c for c in (STATIC, *self.rig.extra) if self.rig.is_rigid(c)))
+        self.structureless: StructurelessLandmarks | None = None
+        if options.landmarks == "smart":
+            if cameras:
+                raise ValueError("landmarks 'smart' supports the static and the gimbal camera only: use 'explicit'")
+            self.structureless = StructurelessLandmarks(options.sigma, options.max_depth)
         self.k = -1
         self.kf_times: dict[int, int] = {}
         self.estimates: dict[int, KeyframeState] = {}
@@ -468,7 +474,7 @@ class VioSmoother:
         """New segment at keyframe ``k`` (time ``t``) from the given state: drop landmarks, anchor a
         fresh window (loose restart priors), observe ``frame`` and refresh the estimates."""
         o = self.opt
-        self.landmarks.clear()
+        self._clear_landmarks()
         self.k = k
         self.kf_times[k] = t
         dcc = o.mode == "dcc"
@@ -666,15 +672,43 @@ class VioSmoother:
                     lms.buffer(tid, k, cam, z)
                     continue
                 err = prediction_error(T_cW, lms.position[lm], z)
-                if err > o.observation_gate * o.sigma:
+                if err > o.gate * o.sigma:
                     self.stats["gated"] += 1
                     if self.residuals is not None:  # a gated observation counts with its predicted error
                         self.residuals.add_gated(cam, err)
                     continue
-                graph.add(self._factor(k, cam, lm, z))
+                self._add_observation(k, cam, lm, z, graph)
                 lms.last_seen_ns[lm] = t
-                stamps[landmark_key(lm)] = t
+                if self.structureless is None:
+                    stamps[landmark_key(lm)] = t
         self._triangulate_ready(k, t, graph, values, stamps)
+
+    def _add_observation(self, k: int, cam: int, lm: int, z: FloatArray, graph: gtsam.NonlinearFactorGraph) -> None:
+        """Landmark ``lm`` seen at ``z`` by camera ``cam`` in keyframe ``k``: its reprojection factor, or, with
+        structureless landmarks, an observation of its smart factor on the camera's pose."""
+        factor = self._factor(k, cam, lm, z)
+        if self.structureless is None:
+            graph.add(factor)
+        else:
+            self.structureless.add(lm, self._camera_pose_key(k, cam), z)
+
+    def _camera_pose_key(self, k: int, cam: int) -> int:
+        """The identity-mount camera pose an observation of camera ``cam`` in keyframe ``k`` is on
+        (structureless landmarks): ``s(k)`` of a timed static image, ``c(k)`` of the gimbal camera."""
+        if cam == STATIC and self.exposure.is_timed(k, STATIC):
+            return static_camera_key(k)
+        if cam == GIMBAL and (self.exposure.is_timed(k, GIMBAL) or self.opt.mode == "dcc"):
+            return camera_key(k)
+        raise RuntimeError(
+            f"keyframe {k}: camera {cam}'s observation has no camera-pose variable; landmarks 'smart' needs "
+            "estimated time offsets and gimbal_factor 'camera_pose'"
+        )
+
+    def _clear_landmarks(self) -> None:
+        """Drop every landmark and buffered track (and their smart factors' bookkeeping)."""
+        self.landmarks.clear()
+        if self.structureless is not None:
+            self.structureless.clear()
 
     def _factor(self, k: int, cam: int, lm: int, z: FloatArray) -> gtsam.NonlinearFactor:
         """Reprojection factor of landmark ``lm`` seen by camera ``cam`` at keyframe k (counted)."""
@@ -715,17 +749,25 @@ class VioSmoother:
         noise = gtsam.noiseModel.Isotropic.Sigma(3, self.opt.landmark_prior_sigma)
         for new in made:
             self.stats["landmarks"] += 1
-            key = landmark_key(new.index)
-            values.insert(key, new.p_W)
-            graph.add(gtsam.PriorFactorPoint3(key, new.p_W, noise))
-            stamps[key] = t
+            if self.structureless is None:
+                key = landmark_key(new.index)
+                values.insert(key, new.p_W)
+                graph.add(gtsam.PriorFactorPoint3(key, new.p_W, noise))
+                stamps[key] = t
             for kk, cam, z in new.obs:
-                graph.add(self._factor(kk, cam, new.index, z))
+                self._add_observation(kk, cam, new.index, z, graph)
 
     def _update(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, stamps: dict[int, int]) -> None:
         """Update the window (restart it after a failure), then refresh estimates and landmarks."""
         self.exposure.touch(stamps, self.kf_times[self.k])
-        error = self.window.update(graph, values, stamps)
+        smart = self.structureless
+        remove = smart.stage(graph) if smart is not None else None
+        error = self.window.update(graph, values, stamps, remove)
+        if smart is not None:
+            if error is None:
+                smart.adopt(self.window.new_factor_slots())
+            else:
+                smart.discard()
         if error is not None:  # indeterminant system etc.: log, restart from the IMU prediction
             self.stats["failed_updates"] += 1
             log.warning(
@@ -741,12 +783,19 @@ class VioSmoother:
         est = self._refresh()
         if self.residuals is not None:
             if error is None:
-                self.residuals.evaluate(est)
+                self.residuals.evaluate(est, self._landmark_points())
             else:
                 self.residuals.discard()
         self.exposure.maybe_freeze(self.window.smoother, self.kf_times[self.k])
         if error is None and self.opt.joint_sigmas and self.opt.mode == "dcc":
             self._joint_sigmas(leaving_only=True)
+
+    def _landmark_points(self) -> dict[int, FloatArray] | None:
+        """Structureless landmarks: landmark key -> position (W, m), for evaluating reprojection residuals."""
+        if self.structureless is None:
+            return None
+        lms = self.landmarks
+        return {landmark_key(lm): p for lm, p in lms.position.items()}
 
     def _joint_sigmas(self, leaving_only: bool) -> None:
         """Joint-angle 1-sigma (rad) of the window's keyframes from its marginal covariances, each keyframe
@@ -790,7 +839,13 @@ class VioSmoother:
         if self.opt.mode == "dcc":
             self.theta = est.atVector(theta_key(k))
         self.chains.refresh(est, self.kf_times, k)
-        self.landmarks.refresh(est, self.kf_times[k] - int(self.opt.lag * NS))
+        cutoff = self.kf_times[k] - int(self.opt.lag * NS)
+        if self.structureless is None:
+            self.landmarks.refresh(est, cutoff)
+        else:
+            self.structureless.prune(est)
+            for lm in self.landmarks.refresh_from(self.structureless.positions(est), cutoff):
+                self.structureless.forget(lm)
         self.stats["keyframes"] = k + 1
         return est
 
@@ -799,7 +854,7 @@ class VioSmoother:
         predicted state (moderate priors), with every landmark and buffered track dropped."""
         k = self.k
         t = self.kf_times[k]
-        self.landmarks.clear()
+        self._clear_landmarks()
         self.exposure.forget(k + 1)  # keyframe k's camera poses were lost with the failed update
         self.exposure.before_restart(self.window.smoother)
         pose = values.atPose3(pose_key(k))
@@ -850,7 +905,7 @@ class VioSmoother:
             first,
         )
         self.stats["restart_fallbacks"] = self.stats.get("restart_fallbacks", 0) + 1
-        self.landmarks.clear()
+        self._clear_landmarks()
         self.exposure.forget(k + 1)
         g, vals, st = anchor_factors(k, t, pose, v, bias, theta, AnchorSigmas.recovery(self.opt))
         self.chains.anchor(k, t, AnchorSigmas.recovery(self.opt).theta, g, vals, st)

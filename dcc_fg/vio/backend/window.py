@@ -133,11 +133,21 @@ class FixedLagWindow:
         self.opt = options
         self.smoother = new_fixed_lag_smoother(options)
 
-    def update(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, stamps: dict[int, int]) -> str | None:
-        """Add new factors and values (keys timed by ``stamps``, ns) and run ``extra_iterations``
-        more; returns None, or the first line of gtsam's error if the update failed."""
+    def update(
+        self,
+        graph: gtsam.NonlinearFactorGraph,
+        values: gtsam.Values,
+        stamps: dict[int, int],
+        remove: list[int] | None = None,
+    ) -> str | None:
+        """Add new factors and values (keys timed by ``stamps``, ns), remove the factors in slots ``remove``
+        and run ``extra_iterations`` more; returns None, or the first line of gtsam's error if the update
+        failed."""
         try:
-            self.smoother.update(graph, values, key_timestamps(stamps))
+            if remove:
+                self.smoother.update(graph, values, key_timestamps(stamps), remove)
+            else:
+                self.smoother.update(graph, values, key_timestamps(stamps))
             for _ in range(self.opt.extra_iterations):
                 self.smoother.update()
         except RuntimeError as err:  # indeterminant system etc.: the first sentence (it names the variable)
@@ -148,6 +158,10 @@ class FixedLagWindow:
         """A fresh smoother started with ``graph`` and ``values`` (errors propagate)."""
         self.smoother = new_fixed_lag_smoother(self.opt)
         self.smoother.update(graph, values, key_timestamps(stamps))
+
+    def new_factor_slots(self) -> list[int]:
+        """The smoother slots of the factors the last update added, in the order they were given."""
+        return list(self.smoother.getISAM2Result().getNewFactorsIndices())
 
     def estimate(self) -> gtsam.Values:
         """The current estimate of every variable in the window."""
