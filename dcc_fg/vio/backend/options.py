@@ -67,13 +67,18 @@ class VioOptions:
     one marginal covariance per keyframe costs about as much as the update itself (off by default).
 
     ``landmarks``: ``explicit`` (a Point3 variable per landmark with Huber-robust reprojection factors) or
-    ``smart`` (structureless: one GTSAM smart projection factor per landmark, the point eliminated inside
-    it, :mod:`~dcc_fg.vio.backend.structureless`; isotropic noise, no robust loss, so observations are gated
-    at ``smart_observation_gate`` sigmas instead of ``observation_gate``: on the 60 s rendered flight a gate
-    of 8 sigmas let outliers through and the run diverged, 4-5 sigmas did not). ``smart`` needs every
-    observation on an identity-mount camera pose: the incremental smoother, estimated time offsets that
-    stay estimated (``time_offset_freeze_sigma`` None), ``gimbal_factor='camera_pose'`` and no further
-    cameras.
+    ``smart`` (structureless, experimental: one GTSAM smart projection factor per landmark, the point
+    eliminated inside it, :mod:`~dcc_fg.vio.backend.structureless`). A smart factor has isotropic noise and
+    no robust loss, so observations are gated at ``smart_observation_gate`` sigmas instead of
+    ``observation_gate`` (on the 60 s rendered flight a gate of 8 sigmas let outliers in and the run
+    diverged), and a landmark whose triangulation leaves an observation beyond ``smart_outlier_sigmas``
+    sigmas contributes nothing at that linearization (gtsam's dynamic outlier rejection; None: never).
+    Without it 2 of 3 runs of that flight drifted or diverged; at 4 sigmas a 20 s tracks-level flight had
+    3 failed updates. Measured on that flight (``benchmarks/bench_vio.py --smart``): about 0.55x the main
+    process's CPU time, but 1.45x the translation RMSE and 1.4x the joint RMSE of ``explicit``.
+    ``smart`` needs every observation on an identity-mount camera pose: the incremental smoother,
+    estimated time offsets that stay estimated (``time_offset_freeze_sigma`` None),
+    ``gimbal_factor='camera_pose'`` and no further cameras.
     """
 
     mode: str = "dcc"
@@ -128,6 +133,7 @@ class VioOptions:
     motion_init_max_window: float = 3.0
     landmarks: str = "explicit"
     smart_observation_gate: float = 5.0
+    smart_outlier_sigmas: float | None = 6.0
 
     def __post_init__(self) -> None:
         if self.initialization not in INITIALIZATIONS:
@@ -166,6 +172,8 @@ class VioOptions:
             value = getattr(self, name)
             if not (np.isfinite(value) and value > 0):
                 raise ValueError(f"smoother option '{name}' must be a positive number, got {value!r}")
+        if self.smart_outlier_sigmas is not None and not self.smart_outlier_sigmas > 0:
+            raise ValueError(f"smart_outlier_sigmas must be > 0 or None, got {self.smart_outlier_sigmas!r}")
         if self.time_offset_freeze_sigma is not None and not self.time_offset_freeze_sigma > 0:
             raise ValueError(f"time_offset_freeze_sigma must be > 0 s or None, got {self.time_offset_freeze_sigma!r}")
         if self.stamp_jitter is not None and (

@@ -108,7 +108,7 @@ class VioSmoother:
         if options.landmarks == "smart":
             if cameras:
                 raise ValueError("landmarks 'smart' supports the static and the gimbal camera only: use 'explicit'")
-            self.structureless = StructurelessLandmarks(options.sigma, options.max_depth)
+            self.structureless = StructurelessLandmarks(options.sigma, options.max_depth, options.smart_outlier_sigmas)
         self.k = -1
         self.kf_times: dict[int, int] = {}
         self.estimates: dict[int, KeyframeState] = {}

@@ -38,13 +38,15 @@ class StructurelessLandmarks:
     """Smart-factor bookkeeping of the window's landmarks (module docstring); landmark index ->
     observations ``(pose key, xy)`` since its current factor started, the factor and its slot."""
 
-    def __init__(self, sigma: float, max_depth: float) -> None:
+    def __init__(self, sigma: float, max_depth: float, outlier_sigmas: float | None = None) -> None:
         self.noise = gtsam.noiseModel.Isotropic.Sigma(2, sigma)
         self.params = gtsam.SmartProjectionParams()
         self.params.setLinearizationMode(gtsam.LinearizationMode.HESSIAN)
         self.params.setDegeneracyMode(gtsam.DegeneracyMode.ZERO_ON_DEGENERACY)
         self.params.setRankTolerance(RANK_TOLERANCE)
         self.params.setLandmarkDistanceThreshold(max_depth)
+        if outlier_sigmas is not None:
+            self.params.setDynamicOutlierRejectionThreshold(outlier_sigmas * sigma)
         self.rig = gtsam.CameraSetPinholePoseCal3_S2()
         self.rig.push_back(gtsam.PinholePoseCal3_S2(gtsam.Pose3(), gtsam.Cal3_S2(1.0, 1.0, 0.0, 0.0, 0.0)))
         self.keys: dict[int, list[int]] = {}
