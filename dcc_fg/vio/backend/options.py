@@ -74,8 +74,10 @@ class VioOptions:
     diverged), and a landmark whose triangulation leaves an observation beyond ``smart_outlier_sigmas``
     sigmas contributes nothing at that linearization (gtsam's dynamic outlier rejection; None: never).
     Without it 2 of 3 runs of that flight drifted or diverged; at 4 sigmas a 20 s tracks-level flight had
-    3 failed updates. Measured on that flight (``benchmarks/bench_vio.py --smart``): about 0.55x the main
-    process's CPU time, but 1.45x the translation RMSE and 1.4x the joint RMSE of ``explicit``.
+    3 failed updates. Measured on that flight (``benchmarks/bench_vio.py --smart``, which runs it with a
+    2.5 s ``lag``: its factors restart when their oldest keyframe leaves the window): 0.69x the main
+    process's CPU time and 0.90x the translation RMSE of ``explicit`` at 1.5 s, but 1.4x the first joint's
+    RMSE (with a 1.5 s lag: 0.56x the CPU, 1.2-1.45x the translation RMSE).
     ``smart`` needs every observation on an identity-mount camera pose: the incremental smoother,
     estimated time offsets that stay estimated (``time_offset_freeze_sigma`` None),
     ``gimbal_factor='camera_pose'`` and no further cameras.
