@@ -100,3 +100,15 @@ def test_smart_landmarks_match_explicit_accuracy_on_a_simulated_flight() -> None
     assert s <= 1.0 and s <= 1.5 * e, (s, e)
     assert max(smart["joint_rmse_rad"]) <= 1e-2
     print(f"\nnormalized translation RMSE explicit {e:.4f} %, smart {s:.4f} %; joints {smart['joint_rmse_rad']}")
+
+
+@pytest.mark.slow  # four 12 s tracks-level VIO runs (~30 s)
+@pytest.mark.parametrize("mode", ["scc", "mono"])
+def test_smart_landmarks_in_the_locked_and_static_camera_modes(mode: str) -> None:
+    """scc (gimbal images on their exposure-time poses) and mono take the structureless landmarks too."""
+    cfg = StudyConfig(duration=12.0, density=0.5, pixel_sigma=0.5, seed=2)
+    explicit = run_mode(mode, cfg)
+    smart = run_mode(mode, cfg, options={"landmarks": "smart"})
+    assert smart["failed_updates"] == 0 and smart["result"].stats.get("segments_started", 0) == 0
+    e, s = explicit["normalized_translation_rmse_percent"], smart["normalized_translation_rmse_percent"]
+    assert s <= 1.0 and s <= 1.5 * e, (s, e)
