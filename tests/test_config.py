@@ -273,6 +273,26 @@ def test_vio_run_reproduced_from_its_summary(tmp_path: Path) -> None:
     assert json.loads((second / "summary.json").read_text())["effective_options"] == summary["effective_options"]
 
 
+@pytest.mark.slow
+def test_vio_with_structureless_landmarks_and_their_refusals(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``--landmarks smart`` runs a short rendered flight and is recorded; with the offsets held it is refused
+    before any work with a message naming the conflict."""
+    flight = tmp_path / "flight"
+    assert main(["simulate", "flight", "--out", str(flight), "--duration", "10", "--scale", "0.5", "-q"]) == 0
+    base = ["vio", str(flight / "flight"), "--calibration", str(flight / "calibration.yaml"), "-q"]
+    out = tmp_path / "smart"
+    assert main([*base, "--out", str(out), "--landmarks", "smart", "--lag", "2.5"]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["options"]["smoother"]["landmarks"] == "smart" and (out / "trajectory.tum").is_file()
+    assert summary["failed_updates"] == 0 and summary["health"]["healthy"]
+    held = tmp_path / "held"
+    capsys.readouterr()
+    assert main([*base, "--out", str(held), "--landmarks", "smart", "--fix-time-offsets"]) == 2
+    assert "landmarks 'smart' needs" in capsys.readouterr().err and not held.exists()
+
+
 def test_summary_json_as_config_needs_options_of_the_same_command(tmp_path: Path) -> None:
     old = tmp_path / "old.json"
     old.write_text(json.dumps({"dcc_fg_version": "0.0.9", "mode": "dcc"}))
