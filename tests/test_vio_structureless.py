@@ -70,7 +70,7 @@ def test_smart_factors_are_replaced_and_restart_after_marginalization() -> None:
         if k == 2:
             assert len(remove) == len(points)  # the factors built at k = 1 (two views)
         stamps = key_timestamps({key: k * 1_000_000_000})
-        smoother.update(graph, values, stamps, remove) if remove else smoother.update(graph, values, stamps)
+        smoother.update(graph, values, stamps, remove)
         smart.adopt(list(smoother.getISAM2Result().getNewFactorsIndices()))
         est = smoother.calculateEstimate()
         smart.prune(est)

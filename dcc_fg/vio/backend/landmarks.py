@@ -264,14 +264,15 @@ class LandmarkMap:
         """Whether two rigid cameras saw the track in keyframe ``k``."""
         return len(self.rigid) > 1 and len({ob[1] for ob in obs if ob[0] == k and ob[1] in self.rigid}) >= 2
 
-    def refresh_from(self, positions: dict[int, FloatArray], cutoff_ns: int) -> list[int]:
-        """Structureless landmarks: positions (W, m) from their factors' triangulation where there is one;
-        forget (and return) the landmarks last seen before ``cutoff_ns``."""
+    def refresh_from(self, positions: dict[int, FloatArray], cutoff_ns: int, missing_leave: bool = False) -> list[int]:
+        """Positions (W, m) where ``positions`` has one (structureless landmarks: their factors'
+        triangulation); forget (and return) the landmarks last seen before ``cutoff_ns`` and, with
+        ``missing_leave``, those without a position."""
         gone = []
         for tid, lm in list(self.active.items()):
             if lm in positions:
                 self.position[lm] = positions[lm]
-            if self.last_seen_ns[lm] < cutoff_ns:
+            if self.last_seen_ns[lm] < cutoff_ns or (missing_leave and lm not in positions):
                 del self.active[tid]
                 self.position.pop(lm, None)
                 gone.append(lm)
@@ -280,9 +281,7 @@ class LandmarkMap:
     def refresh(self, estimate: gtsam.Values, cutoff_ns: int) -> None:
         """Positions from the smoother's estimate; forget landmarks that left it or were last seen
         before ``cutoff_ns``."""
-        for tid, lm in list(self.active.items()):
-            if estimate.exists(landmark_key(lm)):
-                self.position[lm] = estimate.atPoint3(landmark_key(lm))
-            if self.last_seen_ns[lm] < cutoff_ns or not estimate.exists(landmark_key(lm)):
-                del self.active[tid]
-                self.position.pop(lm, None)
+        positions = {
+            lm: estimate.atPoint3(landmark_key(lm)) for lm in self.active.values() if estimate.exists(landmark_key(lm))
+        }
+        self.refresh_from(positions, cutoff_ns, missing_leave=True)

@@ -112,10 +112,7 @@ class StructurelessLandmarks:
         for lm in list(self.keys):
             keys = self.keys[lm]
             if keys and not estimate.exists(keys[0]):
-                del self.keys[lm]
-                del self.xy[lm]
-                self.factor.pop(lm, None)
-                self.slot.pop(lm, None)
+                self.forget(lm)
 
     def forget(self, lm: int) -> None:
         """A landmark left the map: its factor (if any) stays in the smoother until it is marginalized."""

@@ -144,10 +144,7 @@ class FixedLagWindow:
         and run ``extra_iterations`` more; returns None, or the first line of gtsam's error if the update
         failed."""
         try:
-            if remove:
-                self.smoother.update(graph, values, key_timestamps(stamps), remove)
-            else:
-                self.smoother.update(graph, values, key_timestamps(stamps))
+            self.smoother.update(graph, values, key_timestamps(stamps), remove or [])
             for _ in range(self.opt.extra_iterations):
                 self.smoother.update()
         except RuntimeError as err:  # indeterminant system etc.: the first sentence (it names the variable)
