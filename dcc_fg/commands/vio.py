@@ -487,7 +487,7 @@ def add_vio_flags(v: argparse.ArgumentParser) -> None:
         help="hold the time offsets at their start values instead of estimating them")  # fmt: skip
     opt(v, "--landmarks", "smoother.landmarks", choices=["explicit", "smart"], help="explicit (default): a 3-D "
         "variable per landmark with robust reprojection factors; smart (experimental): one GTSAM smart projection "
-        "factor per landmark (0.69x the smoother's CPU on the 60 s benchmark flight with --lag 2.5, same "
+        "factor per landmark (0.69x the main process's CPU on the 60 s benchmark flight with --lag 2.5, same "
         "translation RMSE, 1.2-1.4x the joint RMSE); needs estimated time offsets and no further cameras")  # fmt: skip
     opt(v, "--start", "run.start_s", type=float, metavar="S", help="skip the first S seconds of the bag (from its "
         "first IMU sample); the VIO then starts in motion unless the body is at rest there")  # fmt: skip
