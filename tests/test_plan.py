@@ -14,13 +14,12 @@ import yaml
 from dcc_fg.calibrate import CalibrationOptions, calibrate
 from dcc_fg.cli import main
 from dcc_fg.data import CalibrationDataset, Observation, Snapshot
-from dcc_fg.planning.plan import _candidate_factors, plan_snapshots
+from dcc_fg.planning.plan import _candidate_factors, plan_snapshots, view_factors
 from dcc_fg.planning.predict import (
     INFORMATION_FILE,
     KinematicsInformation,
     accuracy_over_range,
     kinematics_information,
-    place_targets,
     predict,
     scaled_pinv,
 )
@@ -110,7 +109,7 @@ def test_candidate_update_is_the_snapshots_information() -> None:
     # the planner's prediction after its pick equals a fresh prediction from the updated information
     plan = plan_snapshots(info, default_range(info.joint_angles), Tolerance(1e-6, 1e-6), 1, mode="kinematics")
     p = plan.snapshots[0]
-    U = _candidate_factors(predict(info, p.theta[None]))[0]
+    U = view_factors(info, p.theta[None], np.array(p.target["T_st"])[None])[0]
     new = KinematicsInformation(info.kin, 2, info.free, info.information + U @ U.T, info.view, info.joint_angles)
     acc = accuracy_over_range(new, default_range(info.joint_angles), per_axis=15, cap=1000)
     rot, tra = acc.prediction.sigmas("kinematics")
@@ -154,13 +153,15 @@ def test_plan_beats_random_snapshots_and_stops() -> None:
         plan_snapshots(info, rng_, tight, 0)
 
 
-def _simulate_at(sim: SimulatedCalibration, info: KinematicsInformation, thetas: np.ndarray, seed: int) -> list:
-    """Corner-level snapshots at true joint angles with the target where the plan says (noise 0.4 px)."""
+def _simulate_at(
+    sim: SimulatedCalibration, info: KinematicsInformation, thetas: np.ndarray, poses: np.ndarray, seed: int
+) -> list:
+    """Corner-level snapshots at true joint angles with the target at ``poses`` (T_st, where the plan
+    says; noise 0.4 px)."""
     rng = np.random.default_rng(seed)
     out = []
-    for k, th in enumerate(thetas):
+    for k, (th, T_st) in enumerate(zip(thetas, poses, strict=True)):
         T_ds = sim.truth.T_ds(th)
-        T_st = place_targets(info.view, T_ds[None]).T_st[0]
         pts = info.view.target_points
         p_s = pts @ T_st[:3, :3].T + T_st[:3, 3]
         p_d = p_s @ T_ds[:3, :3].T + T_ds[:3, 3]
@@ -181,7 +182,8 @@ def test_following_the_plan_gives_the_predicted_accuracy() -> None:
     plan = plan_snapshots(info, rng_, Tolerance(1e-6, 1e-6), 4)
     planned = np.array([s.theta for s in plan.snapshots])
     data = sim.calibration_set
-    snaps = list(data.snapshots) + _simulate_at(sim, info, planned, 7)
+    poses = np.array([s.target["T_st"] for s in plan.snapshots])
+    snaps = list(data.snapshots) + _simulate_at(sim, info, planned, poses, 7)
     data2 = CalibrationDataset(data.static_camera, data.dynamic_camera, data.target_points, snaps, "planned")
     res2 = calibrate(data2, sim.truth, CalibrationOptions())
     info2 = kinematics_information(res2, data2)

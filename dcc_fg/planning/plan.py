@@ -40,12 +40,17 @@ from numpy.typing import NDArray
 from dcc_fg.planning.predict import (
     MODES,
     KinematicsInformation,
+    Placement,
     Prediction,
+    candidate_poses,
+    placement_at,
     predict,
     range_grid,
     snapshot_operators,
+    view_information,
 )
 from dcc_fg.planning.range_spec import Tolerance, format_range
+from factors import chain
 
 FloatArray = NDArray[np.float64]
 
@@ -55,6 +60,7 @@ EVAL_PER_AXIS = 15  # evaluation grid of the objective: points per joint ...
 EVAL_CAP = 1000  # ... capped at this many points
 CANDIDATE_PER_AXIS = {1: 41, 2: 15, 3: 8}  # candidate joint angles per joint (limits included)
 CHUNK_BYTES = 80e6  # memory of one chunk of candidate scores
+VIEW_CHUNK = 2000  # candidate views whose information is computed at once
 
 
 @dataclass
@@ -134,12 +140,18 @@ class Plan:
             vert = "below" if c[1] >= 0 else "above"
             lines.append(
                 f"{i + 1:3d}. {angles}; target {s.target['distance_m']:.2f} m from the static camera, centre "
-                f"{abs(c[0]):.2f} m {side} / {abs(c[1]):.2f} m {vert} its optical axis, tilted "
-                f"{s.target['tilt_deg']:.0f} deg towards both cameras -> worst {s.worst_rotation * 1e3:.3g} mrad / "
+                f"{abs(c[0]):.2f} m {side} / {abs(c[1]):.2f} m {vert} its optical axis, its face turned "
+                f"{_turn(s.target['face_right_deg'], 'right', 'left')} and "
+                f"{_turn(s.target['face_up_deg'], 'up', 'down')} "
+                f"from facing the static camera squarely -> worst {s.worst_rotation * 1e3:.3g} mrad / "
                 f"{s.worst_translation * 1e3:.3g} mm"
             )
         lines.append(("DONE: " if self.reached else "NOT YET: ") + self.reason)
         return "\n".join(lines)
+
+
+def _turn(deg: float, positive: str, negative: str) -> str:
+    return f"{abs(deg):.0f} deg {positive if deg >= 0 else negative}"
 
 
 def _objective(q: FloatArray, objective: str) -> FloatArray:
@@ -171,15 +183,68 @@ def _eval_grid(pred: Prediction, mode: str) -> _Grid:
     return _Grid(pred.J_kin, np.zeros((G, 6, 6)), np.ones(G, dtype=bool))
 
 
-def _candidate_factors(pred: Prediction) -> FloatArray:
-    """(Nc, n_free, 6) ``U_c`` of every candidate with a shared view (module docstring)."""
-    Lam, Jt = pred.view_info, pred.J_theta
+def _factors(Lam: FloatArray, Jt: FloatArray, Jk: FloatArray) -> FloatArray:
+    """(N, n_free, 6) ``U`` for views of information ``Lam`` (N, 6, 6) on ``xi`` with ``T_ds`` Jacobians
+    ``Jt`` (N, 6, L) and ``Jk`` (N, 6, n_free): the joint angles eliminated (module docstring)."""
     A = np.swapaxes(Jt, 1, 2) @ Lam @ Jt
     LJ = Lam @ Jt
     Lp = Lam - LJ @ np.linalg.pinv(A) @ np.swapaxes(LJ, 1, 2)
     w, V = np.linalg.eigh(0.5 * (Lp + np.swapaxes(Lp, 1, 2)))
     W = V * np.sqrt(np.maximum(w, 0.0))[:, None, :]
-    return np.swapaxes(pred.J_kin, 1, 2) @ W
+    return np.swapaxes(Jk, 1, 2) @ W
+
+
+def _candidate_factors(pred: Prediction) -> FloatArray:
+    """(Nc, n_free, 6) ``U_c`` of every view of a prediction (module docstring)."""
+    return _factors(pred.view_info, pred.J_theta, pred.J_kin)
+
+
+@dataclass
+class _Candidates:
+    """Candidate snapshots: (P, L) joint angles, their target poses (P), ``U`` (P, n_free, 6) and (P,)
+    the index of each one's joint-angle vector among the candidate joint angles."""
+
+    thetas: FloatArray
+    placement: Placement
+    U: FloatArray
+    owner: NDArray[np.int64]
+
+
+def candidate_views(info: KinematicsInformation, thetas: FloatArray) -> _Candidates:
+    """Every target pose :func:`~dcc_fg.planning.predict.candidate_poses` offers at each joint-angle
+    vector ``thetas`` (G, L) rad, with its rank update ``U`` (information computed in chunks of
+    ``VIEW_CHUNK`` views)."""
+    thetas = np.asarray(thetas, dtype=float).reshape(-1, info.n_joints)
+    T, Jk_full, Jt = chain.d_T_ds_tangent_batch(info.kin, thetas, info.n_joints)
+    Jk = Jk_full[:, :, info.free]
+    placement, owner = candidate_poses(info.view, T)
+    U = np.zeros((len(owner), int(info.free.sum()), 6))
+    for a in range(0, len(owner), VIEW_CHUNK):
+        idx = np.arange(a, min(a + VIEW_CHUNK, len(owner)))
+        o = owner[idx]
+        Lam = view_information(info.view, T[o], placement.take(idx))
+        U[idx] = _factors(Lam, Jt[o], Jk[o])
+    return _Candidates(thetas[owner], placement, U, owner)
+
+
+def view_factors(info: KinematicsInformation, thetas: FloatArray, T_st: FloatArray) -> FloatArray:
+    """(G, n_free, 6) ``U`` of snapshots at joint angles ``thetas`` (G, L) rad with the target at ``T_st``
+    (G, 4, 4) in the static camera frame, m: what the planner adds for a pick (module docstring)."""
+    thetas = np.asarray(thetas, dtype=float).reshape(-1, info.n_joints)
+    T, Jk_full, Jt = chain.d_T_ds_tangent_batch(info.kin, thetas, info.n_joints)
+    Lam = view_information(info.view, T, placement_at(info.view, T_st, T))
+    return _factors(Lam, Jt, Jk_full[:, :, info.free])
+
+
+def _best_pose_each(c: _Candidates, C: FloatArray) -> NDArray[np.int64]:
+    """Per candidate joint-angle vector, the index of its pose with the largest information gain on the
+    kinematics, ``log det(I + U^T C U)`` (the pre-selection before the objective is scored)."""
+    S = np.eye(6) + np.swapaxes(c.U, 1, 2) @ C @ c.U
+    gain = np.linalg.slogdet(S)[1]
+    order = np.lexsort((-gain, c.owner))
+    first = np.ones(order.size, dtype=bool)
+    first[1:] = c.owner[order[1:]] != c.owner[order[:-1]]
+    return order[first]
 
 
 def _sigmas(F: FloatArray, C: FloatArray, N: FloatArray) -> tuple[FloatArray, FloatArray]:
@@ -272,11 +337,9 @@ def plan_snapshots(
     if candidates is None:
         n = CANDIDATE_PER_AXIS.get(L, max(3, int(round(400 ** (1.0 / L)))))
         candidates, _ = range_grid(ranges, n, n**L)
-    cand = predict(info, candidates)
-    usable = np.flatnonzero(cand.placement.full)  # a checkerboard detector needs the whole board in both images
-    if usable.size == 0:
+    cand = candidate_views(info, candidates)
+    if cand.owner.size == 0:
         raise ValueError("no candidate joint angles give a view of the whole target to both cameras")
-    U_all = _candidate_factors(cand)[usable]
     C = info.covariance.copy()
     rot, tra = _sigmas(grid.F, C, grid.N)
     now = _stats(rot, tra)
@@ -296,11 +359,12 @@ def plan_snapshots(
         reason = ""
     if not reached and not reason:
         for _ in range(k):
-            scores, var_r, var_t = _scores(grid.F, C, grid.N, U_all, tolerance, objective)
+            pool = _best_pose_each(cand, C)
+            scores, var_r, var_t = _scores(grid.F, C, grid.N, cand.U[pool], tolerance, objective)
             best = int(np.argmin(scores))
-            C = _woodbury(C, U_all[best])
+            g = int(pool[best])
+            C = _woodbury(C, cand.U[g])
             rot, tra = np.sqrt(var_r[best]), np.sqrt(var_t[best])
-            g = int(usable[best])
             picks.append(
                 PlannedSnapshot(
                     cand.thetas[g].copy(),

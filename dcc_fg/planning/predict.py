@@ -70,6 +70,9 @@ MARGIN_PX = 10.0  # corners this far inside the image (as the simulator places t
 GRID_PER_AXIS = 15  # accuracy grid: points per joint ...
 GRID_CAP = 2000  # ... capped at this many points in all (12^3 for L = 3)
 DISTANCE_STEPS = 7  # target distances tried per view
+POSE_TILTS_DEG = (15.0, 30.0)  # the planner's target poses: extra tilts of the facing board's normal ...
+POSE_TILT_DIRECTIONS = 6  # ... towards this many directions in the board plane
+MAX_OBLIQUE_DEG = 50.0  # largest angle between the board normal and a camera's ray to the board centre
 INFORMATION_FILE = "kinematics_information.npz"
 MODES = ("snapshot", "calibration", "kinematics")
 
@@ -117,14 +120,25 @@ class Placement:
     distance: FloatArray
     centre: FloatArray
 
+    def take(self, idx: NDArray[np.int64]) -> Placement:
+        """The placements ``idx`` (an index array) as a new Placement."""
+        return Placement(
+            self.T_st[idx], self.seen_s[idx], self.seen_d[idx], self.ok[idx], self.full[idx],
+            self.distance[idx], self.centre[idx],
+        )  # fmt: skip
+
     def describe(self, g: int) -> dict[str, Any]:
         """Where to hold the target for view g: distance (m), centre in s (x right, y down, z forward; m),
-        tilt of the board normal from the static optical axis (deg), ``T_st`` (4x4)."""
+        tilt of the board normal from the static optical axis (deg), the direction its face points
+        (``f = -n``, towards the cameras) as turns from facing the static camera squarely: right (+x,
+        ``face_right_deg = atan2(f_x, -f_z)``) and up (-y, ``face_up_deg = atan2(-f_y, -f_z)``), ``T_st`` (4x4)."""
         n = self.T_st[g, :3, 2]
         return {
             "distance_m": float(self.distance[g]),
             "centre_in_static_camera_m": [float(x) for x in self.centre[g]],
             "tilt_deg": float(np.degrees(np.arccos(np.clip(abs(n[2]), 0.0, 1.0)))),
+            "face_right_deg": float(np.degrees(np.arctan2(-n[0], n[2]))),
+            "face_up_deg": float(np.degrees(np.arctan2(n[1], n[2]))),
             "T_st": [[float(x) for x in row] for row in self.T_st[g]],
             "all_corners_in_both_images": bool(self.full[g]),
         }
@@ -136,6 +150,53 @@ def _visible(cam: CameraModel, p: FloatArray) -> BoolArray:
     flat = p.reshape(-1, 3)
     uv, _ = cam.project(flat, jacobian=False)
     return (cam.in_front(flat) & cam.in_image(uv, MARGIN_PX)).reshape(G, M)
+
+
+def _facing_pose(c_d: FloatArray, axis_d: FloatArray, z: float, centre_t: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """(G, 4, 4) ``T_st`` of the facing placement at distance ``z`` (m) and its aim point (G, 3) in s:
+    board centre half way between the static optical axis at z and the dynamic one (centre ``c_d``,
+    axis ``axis_d`` in s) at depth z, normal from the midpoint of the two camera centres to the aim."""
+    aim = 0.5 * (np.array([0.0, 0.0, z]) + c_d + z * axis_d)
+    n = aim - 0.5 * c_d
+    return _board_pose(n / np.linalg.norm(n, axis=1, keepdims=True), aim, centre_t), aim
+
+
+def _board_pose(n: FloatArray, aim: FloatArray, centre_t: FloatArray) -> FloatArray:
+    """(G, 4, 4) ``T_st`` with board normal (target z axis, pointing away from the cameras) ``n`` (G, 3),
+    its x axis as close to the static camera's x axis as that allows (no roll), centre at ``aim``."""
+    x = np.array([1.0, 0.0, 0.0]) - n[:, :1] * n
+    x /= np.linalg.norm(x, axis=1, keepdims=True)
+    y = np.cross(n, x)
+    T = np.tile(np.eye(4), (len(n), 1, 1))
+    T[:, :3, 0], T[:, :3, 1], T[:, :3, 2] = x, y, n
+    T[:, :3, 3] = aim - np.einsum("gij,j->gi", T[:, :3, :3], centre_t)
+    return T
+
+
+def _camera_geometry(T_ds: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    """``R_ds``, ``t_ds``, the dynamic camera centre in s and its optical axis in s, per ``T_ds``."""
+    R_ds, t_ds = T_ds[:, :3, :3], T_ds[:, :3, 3]
+    return R_ds, t_ds, -np.einsum("gji,gj->gi", R_ds, t_ds), R_ds[:, 2, :]
+
+
+def _seen(view: ViewModel, T_st: FloatArray, T_ds: FloatArray) -> tuple[BoolArray, BoolArray]:
+    """(G, M) corners of the board at ``T_st`` inside each image (static, dynamic), ``MARGIN_PX`` in."""
+    pts = view.target_points
+    p_s = np.einsum("gij,mj->gmi", T_st[:, :3, :3], pts) + T_st[:, None, :3, 3]
+    p_d = np.einsum("gij,gmj->gmi", T_ds[:, :3, :3], p_s) + T_ds[:, None, :3, 3]
+    return _visible(view.static_camera, p_s), _visible(view.dynamic_camera, p_d)
+
+
+def placement_at(view: ViewModel, T_st: FloatArray, T_ds: FloatArray) -> Placement:
+    """The :class:`Placement` of given target poses ``T_st`` (G, 4, 4) for ``T_ds`` (G, 4, 4): which
+    corners each camera sees, the board centre in s and its distance from the static camera."""
+    T_st = np.asarray(T_st, dtype=float).reshape(-1, 4, 4)
+    T_ds = np.asarray(T_ds, dtype=float).reshape(-1, 4, 4)
+    vs, vd = _seen(view, T_st, T_ds)
+    score = np.minimum(vs.sum(axis=1), vd.sum(axis=1))
+    centre = np.einsum("gij,j->gi", T_st[:, :3, :3], view.target_points.mean(axis=0)) + T_st[:, :3, 3]
+    M = len(view.target_points)
+    return Placement(T_st, vs, vd, score >= MIN_CORNERS, score == M, np.linalg.norm(centre, axis=1), centre)
 
 
 def place_targets(view: ViewModel, T_ds: FloatArray) -> Placement:
@@ -150,9 +211,7 @@ def place_targets(view: ViewModel, T_ds: FloatArray) -> Placement:
     G = T_ds.shape[0]
     pts = view.target_points
     centre_t = pts.mean(axis=0)
-    R_ds, t_ds = T_ds[:, :3, :3], T_ds[:, :3, 3]
-    c_d = -np.einsum("gji,gj->gi", R_ds, t_ds)  # dynamic camera centre in s
-    axis_d = R_ds[:, 2, :]  # dynamic optical axis in s
+    _, _, c_d, axis_d = _camera_geometry(T_ds)
     near, far = view.distance_range
     dists = [view.distance] + [
         float(z) for z in np.linspace(near, far, DISTANCE_STEPS) if abs(z - view.distance) > 1e-9
@@ -165,18 +224,8 @@ def place_targets(view: ViewModel, T_ds: FloatArray) -> Placement:
     best_c = np.zeros((G, 3))
     done = np.zeros(G, dtype=bool)
     for z in dists:
-        aim = 0.5 * (np.array([0.0, 0.0, z]) + c_d + z * axis_d)
-        n = aim - 0.5 * c_d
-        n /= np.linalg.norm(n, axis=1, keepdims=True)
-        x = np.array([1.0, 0.0, 0.0]) - n[:, :1] * n
-        x /= np.linalg.norm(x, axis=1, keepdims=True)
-        y = np.cross(n, x)
-        T = np.tile(np.eye(4), (G, 1, 1))
-        T[:, :3, 0], T[:, :3, 1], T[:, :3, 2] = x, y, n
-        T[:, :3, 3] = aim - np.einsum("gij,j->gi", T[:, :3, :3], centre_t)
-        p_s = np.einsum("gij,mj->gmi", T[:, :3, :3], pts) + T[:, None, :3, 3]
-        p_d = np.einsum("gij,gmj->gmi", R_ds, p_s) + t_ds[:, None, :]
-        vs, vd = _visible(view.static_camera, p_s), _visible(view.dynamic_camera, p_d)
+        T, aim = _facing_pose(c_d, axis_d, z, centre_t)
+        vs, vd = _seen(view, T, T_ds)
         score = np.minimum(vs.sum(axis=1), vd.sum(axis=1))
         better = (~done) & (score > best_score)
         best_T[better], best_s[better], best_d[better] = T[better], vs[better], vd[better]
@@ -186,6 +235,66 @@ def place_targets(view: ViewModel, T_ds: FloatArray) -> Placement:
             break
     ok = best_score >= MIN_CORNERS
     return Placement(best_T, best_s, best_d, ok, best_score == len(pts), best_z, best_c)
+
+
+def _tilted(n: FloatArray, T_face: FloatArray, tilt: float, direction: float) -> FloatArray:
+    """Normals ``n`` (G, 3) turned by ``tilt`` rad about the in-plane axis at angle ``direction`` (rad)
+    from the facing board's x axis (``T_face`` (G, 4, 4))."""
+    u = np.cos(direction) * T_face[:, :3, 0] + np.sin(direction) * T_face[:, :3, 1]
+    # Rodrigues for a unit axis u perpendicular to n: n cos + (u x n) sin
+    return np.cos(tilt) * n + np.sin(tilt) * np.cross(u, n)
+
+
+def candidate_poses(view: ViewModel, T_ds: FloatArray) -> tuple[Placement, NDArray[np.int64]]:
+    """Target poses a planner may propose for each ``T_ds`` (G, 4, 4): at the view's preferred, nearest
+    and farthest distance, the facing pose of :func:`place_targets` and that pose's normal tilted by each
+    of ``POSE_TILTS_DEG`` towards ``POSE_TILT_DIRECTIONS`` directions in the board plane (no roll; the
+    centre stays). Kept: every corner ``MARGIN_PX`` inside both images (a checkerboard detector needs the
+    whole board) and the board seen by each camera at most ``MAX_OBLIQUE_DEG`` from its normal (centre
+    ray against normal). Returns the kept poses as one :class:`Placement` (P poses; ``ok`` and ``full``
+    all true) and (P,) the index into ``T_ds`` of each."""
+    T_ds = np.asarray(T_ds, dtype=float).reshape(-1, 4, 4)
+    G = T_ds.shape[0]
+    centre_t = view.target_points.mean(axis=0)
+    _, _, c_d, axis_d = _camera_geometry(T_ds)
+    cos_max = np.cos(np.radians(MAX_OBLIQUE_DEG))
+    dists = sorted({float(view.distance), float(view.distance_range[0]), float(view.distance_range[1])})
+    turns = [(0.0, 0.0)] + [
+        (np.radians(t), 2.0 * np.pi * k / POSE_TILT_DIRECTIONS)
+        for t in POSE_TILTS_DEG
+        for k in range(POSE_TILT_DIRECTIONS)
+    ]
+    keep_T, keep_s, keep_d, keep_z, keep_c, owner = [], [], [], [], [], []
+    for z in dists:
+        T_face, aim = _facing_pose(c_d, axis_d, z, centre_t)
+        for tilt, direction in turns:
+            n = T_face[:, :3, 2] if tilt == 0.0 else _tilted(T_face[:, :3, 2], T_face, tilt, direction)
+            T = T_face if tilt == 0.0 else _board_pose(n, aim, centre_t)
+            vs, vd = _seen(view, T, T_ds)
+            ray_s = aim / np.linalg.norm(aim, axis=1, keepdims=True)
+            ray_d = aim - c_d
+            ray_d /= np.linalg.norm(ray_d, axis=1, keepdims=True)
+            good = vs.all(axis=1) & vd.all(axis=1)
+            good &= (np.einsum("gi,gi->g", n, ray_s) >= cos_max) & (np.einsum("gi,gi->g", n, ray_d) >= cos_max)
+            idx = np.flatnonzero(good)
+            keep_T.append(T[idx])
+            keep_s.append(vs[idx])
+            keep_d.append(vd[idx])
+            keep_z.append(np.full(idx.size, z))
+            keep_c.append(aim[idx])
+            owner.append(idx)
+    P = int(sum(len(i) for i in owner))
+    placement = Placement(
+        np.concatenate(keep_T),
+        np.concatenate(keep_s),
+        np.concatenate(keep_d),
+        np.ones(P, dtype=bool),
+        np.ones(P, dtype=bool),
+        np.concatenate(keep_z),
+        np.concatenate(keep_c),
+    )
+    assert G == 0 or P == 0 or int(np.concatenate(owner).max()) < G
+    return placement, np.concatenate(owner).astype(np.int64)
 
 
 def _twist_basis(p: FloatArray) -> FloatArray:
