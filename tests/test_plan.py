@@ -153,6 +153,33 @@ def test_plan_beats_random_snapshots_and_stops() -> None:
         plan_snapshots(info, rng_, tight, 0)
 
 
+@pytest.mark.parametrize("L", [1, 2])
+def test_the_planned_target_poses_beat_the_facing_pose(L: int) -> None:
+    """Where to hold the target matters: the plan's snapshots with its chosen target poses reduce the
+    predicted worst 1-sigma over the range more than the same joint angles with the board facing both
+    cameras (place_targets, the pose a planner without a pose choice would propose)."""
+    _, info = _start(L)
+    rng_ = default_range(info.joint_angles)
+    plan = plan_snapshots(info, rng_, Tolerance(1e-6, 1e-6), 4)
+    th = np.array([p.theta for p in plan.snapshots])
+    chosen = view_factors(info, th, np.array([p.target["T_st"] for p in plan.snapshots]))
+    facing = _candidate_factors(predict(info, th))
+
+    def worst_after(U: np.ndarray) -> float:
+        new = KinematicsInformation(
+            info.kin, L, info.free, info.information + sum(u @ u.T for u in U), info.view, info.joint_angles
+        )
+        rot, tra = accuracy_over_range(new, rng_, per_axis=15, cap=1000).prediction.sigmas("calibration")
+        return max(float(np.nanmax(rot)) / 1e-3, float(np.nanmax(tra)) / 1e-3)
+
+    assert worst_after(chosen) < worst_after(facing)
+    assert np.isclose(
+        worst_after(chosen),
+        max(plan.snapshots[-1].worst_rotation, plan.snapshots[-1].worst_translation) / 1e-3,
+        rtol=0.05,
+    )
+
+
 def _simulate_at(
     sim: SimulatedCalibration, info: KinematicsInformation, thetas: np.ndarray, poses: np.ndarray, seed: int
 ) -> list:

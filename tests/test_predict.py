@@ -15,12 +15,17 @@ from scipy.stats import chi2
 from dcc_fg.calibrate import CalibrationOptions, CalibrationResult, calibrate
 from dcc_fg.data import CalibrationDataset, Observation, Snapshot
 from dcc_fg.planning.predict import (
+    MAX_OBLIQUE_DEG,
+    POSE_TILT_DIRECTIONS,
+    POSE_TILTS_DEG,
     KinematicsInformation,
     ViewModel,
     accuracy_over_range,
     accuracy_table,
+    candidate_poses,
     kinematics_information,
     place_targets,
+    placement_at,
     predict,
     range_grid,
     view_information,
@@ -72,6 +77,44 @@ def test_view_information_matches_numerical_differentiation() -> None:
     expected = H[:6, :6] - H[:6, 6:] @ np.linalg.solve(H[6:, 6:], H[6:, :6])
     got = view_information(view, T_ds, pl)[0]
     assert np.allclose(got, expected, rtol=1e-5, atol=1e-6 * np.abs(expected).max())
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_candidate_poses_show_the_whole_board_to_both_cameras(seed: int) -> None:
+    """Every pose the planner may propose (random family members, random joint angles in their range)
+    shows every corner inside both images, is seen at most MAX_OBLIQUE_DEG off its normal by each
+    camera and belongs to the T_ds it was made for; the facing pose (place_targets' at the preferred
+    distance) is among them; at most the documented number per T_ds."""
+    member = family_member(seed, None, 20)
+    truth = member.truth
+    assert truth.static_camera is not None and truth.dynamic_camera is not None
+    rng = np.random.default_rng(seed)
+    th = member.ranges[:, 0] + rng.uniform(size=(12, truth.n_joints)) * np.ptp(member.ranges, axis=1)
+    T_ds = chain.T_ds_batch(truth.kin, th, truth.n_joints)
+    near, far = member.scene.distance_range
+    view = ViewModel(
+        truth.static_camera, truth.dynamic_camera, member.scene.target.points, 0.5 * (near + far), (near, far), 0.3
+    )
+    pl, owner = candidate_poses(view, T_ds)
+    assert len(owner) == len(pl.T_st) and (len(owner) == 0 or owner.max() < len(T_ds))
+    per_view = 3 * (1 + len(POSE_TILTS_DEG) * POSE_TILT_DIRECTIONS)
+    assert np.all(np.bincount(owner, minlength=len(T_ds)) <= per_view)
+    again = placement_at(view, pl.T_st, T_ds[owner])  # recomputed from the poses alone
+    assert again.full.all() and np.allclose(again.centre, pl.centre) and np.allclose(again.distance, pl.distance)
+    assert np.allclose(np.linalg.norm(pl.centre, axis=1), pl.distance)
+    for c, T in zip(pl.centre, pl.T_st, strict=True):
+        assert np.allclose(T[:3, :3] @ view.target_points.mean(axis=0) + T[:3, 3], c)
+        assert np.allclose(T[:3, :3].T @ T[:3, :3], np.eye(3), atol=1e-12) and np.linalg.det(T[:3, :3]) > 0
+    n = pl.T_st[:, :3, 2]
+    c_d = -np.einsum("gji,gj->gi", T_ds[owner, :3, :3], T_ds[owner, :3, 3])
+    for ray in (pl.centre, pl.centre - c_d):
+        cosang = np.einsum("gi,gi->g", n, ray) / np.linalg.norm(ray, axis=1)
+        assert np.all(cosang >= np.cos(np.radians(MAX_OBLIQUE_DEG)) - 1e-12)
+    facing = place_targets(view, T_ds)
+    full = np.flatnonzero(facing.full)
+    assert full.size and all(np.any(owner == g) for g in full)  # a whole-board view has candidates
+    found = [np.any(np.all(np.isclose(pl.T_st[owner == g], facing.T_st[g], atol=1e-12), axis=(1, 2))) for g in full]
+    assert sum(found) >= 1  # (place_targets may have taken an intermediate distance, not a candidate's)
 
 
 def test_a_view_with_no_corner_seen_has_no_information() -> None:

@@ -220,7 +220,6 @@ def place_targets(view: ViewModel, T_ds: FloatArray) -> Placement:
     best_score = np.full(G, -1)
     best_s = np.zeros((G, len(pts)), dtype=bool)
     best_d = np.zeros((G, len(pts)), dtype=bool)
-    best_z = np.zeros(G)
     best_c = np.zeros((G, 3))
     done = np.zeros(G, dtype=bool)
     for z in dists:
@@ -229,12 +228,12 @@ def place_targets(view: ViewModel, T_ds: FloatArray) -> Placement:
         score = np.minimum(vs.sum(axis=1), vd.sum(axis=1))
         better = (~done) & (score > best_score)
         best_T[better], best_s[better], best_d[better] = T[better], vs[better], vd[better]
-        best_score[better], best_z[better], best_c[better] = score[better], z, aim[better]
+        best_score[better], best_c[better] = score[better], aim[better]
         done |= score == len(pts)
         if done.all():
             break
     ok = best_score >= MIN_CORNERS
-    return Placement(best_T, best_s, best_d, ok, best_score == len(pts), best_z, best_c)
+    return Placement(best_T, best_s, best_d, ok, best_score == len(pts), np.linalg.norm(best_c, axis=1), best_c)
 
 
 def _tilted(n: FloatArray, T_face: FloatArray, tilt: float, direction: float) -> FloatArray:
@@ -264,7 +263,7 @@ def candidate_poses(view: ViewModel, T_ds: FloatArray) -> tuple[Placement, NDArr
         for t in POSE_TILTS_DEG
         for k in range(POSE_TILT_DIRECTIONS)
     ]
-    keep_T, keep_s, keep_d, keep_z, keep_c, owner = [], [], [], [], [], []
+    keep_T, keep_s, keep_d, keep_c, owner = [], [], [], [], []
     for z in dists:
         T_face, aim = _facing_pose(c_d, axis_d, z, centre_t)
         for tilt, direction in turns:
@@ -280,7 +279,6 @@ def candidate_poses(view: ViewModel, T_ds: FloatArray) -> tuple[Placement, NDArr
             keep_T.append(T[idx])
             keep_s.append(vs[idx])
             keep_d.append(vd[idx])
-            keep_z.append(np.full(idx.size, z))
             keep_c.append(aim[idx])
             owner.append(idx)
     P = int(sum(len(i) for i in owner))
@@ -290,7 +288,7 @@ def candidate_poses(view: ViewModel, T_ds: FloatArray) -> tuple[Placement, NDArr
         np.concatenate(keep_d),
         np.ones(P, dtype=bool),
         np.ones(P, dtype=bool),
-        np.concatenate(keep_z),
+        np.linalg.norm(np.concatenate(keep_c), axis=1),
         np.concatenate(keep_c),
     )
     assert G == 0 or P == 0 or int(np.concatenate(owner).max()) < G
