@@ -122,13 +122,11 @@ class CameraModel:
         uv[:, 1] = fy * xyd[:, 1] + cy
         if not jacobian:
             return uv, None
-        n = p_c.shape[0]
-        J_norm = np.zeros((n, 2, 3))
-        J_norm[:, 0, 0] = inv_z
-        J_norm[:, 1, 1] = inv_z
-        J_norm[:, 0, 2] = -xy[:, 0] * inv_z
-        J_norm[:, 1, 2] = -xy[:, 1] * inv_z
-        J = np.einsum("nij,njk->nik", J_dist, J_norm)
+        # d xy / d p_c = [[1, 0, -x], [0, 1, -y]] / z, so J_dist times it column by column
+        J = np.empty((p_c.shape[0], 2, 3))
+        J[:, :, 0] = J_dist[:, :, 0] * inv_z[:, None]
+        J[:, :, 1] = J_dist[:, :, 1] * inv_z[:, None]
+        J[:, :, 2] = -(J_dist[:, :, 0] * xy[:, 0:1] + J_dist[:, :, 1] * xy[:, 1:2]) * inv_z[:, None]
         J[:, 0, :] *= fx
         J[:, 1, :] *= fy
         return uv, J
