@@ -337,9 +337,6 @@ def plan_snapshots(
     if candidates is None:
         n = CANDIDATE_PER_AXIS.get(L, max(3, int(round(400 ** (1.0 / L)))))
         candidates, _ = range_grid(ranges, n, n**L)
-    cand = candidate_views(info, candidates)
-    if cand.owner.size == 0:
-        raise ValueError("no candidate joint angles give a view of the whole target to both cameras")
     C = info.covariance.copy()
     rot, tra = _sigmas(grid.F, C, grid.N)
     now = _stats(rot, tra)
@@ -358,6 +355,9 @@ def plan_snapshots(
     else:
         reason = ""
     if not reached and not reason:
+        cand = candidate_views(info, candidates)  # only when snapshots are to be proposed (the costly part)
+        if cand.owner.size == 0:
+            raise ValueError("no candidate joint angles give a view of the whole target to both cameras")
         for _ in range(k):
             pool = _best_pose_each(cand, C)
             scores, var_r, var_t = _scores(grid.F, C, grid.N, cand.U[pool], tolerance, objective)
