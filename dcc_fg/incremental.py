@@ -328,6 +328,20 @@ class _Prediction:
     reached: bool = False
 
 
+@dataclass(frozen=True)
+class _GraphState:
+    """The solver's graph state, saved while a background solution is tried and restored if it is not
+    kept: problem, graph, values, iSAM2, held-direction count, pixel-coordinate count, global RMS."""
+
+    problem: CalibrationProblem | None
+    graph: gtsam.NonlinearFactorGraph | None
+    values: gtsam.Values | None
+    isam: gtsam.ISAM2 | None
+    n_held: int
+    n_obs: int
+    global_rms: float
+
+
 class IncrementalCalibration:
     """Encoderless calibration that grows one snapshot at a time (module docstring).
 
@@ -558,7 +572,7 @@ class IncrementalCalibration:
         if self._problem is None:
             self._rebuild(sol)
             return done
-        saved = (self._problem, self._graph, self._values, self._isam, self._n_held, self._n_obs, self._global_rms)
+        saved = self._save_state()
         assert self._graph is not None and self._values is not None
         current_error = self._graph.error(self._values)
         n_current = self._problem.n_snapshots
@@ -571,8 +585,17 @@ class IncrementalCalibration:
             why = "lower cost"
         except EstimatorError as exc:
             why = f"a later snapshot does not fit the new solution: {exc}"
-        (self._problem, self._graph, self._values, self._isam, self._n_held, self._n_obs, self._global_rms) = saved
+        self._restore_state(saved)
         return f"{done}: kept the current estimate ({why})"
+
+    def _save_state(self) -> _GraphState:
+        return _GraphState(
+            self._problem, self._graph, self._values, self._isam, self._n_held, self._n_obs, self._global_rms
+        )
+
+    def _restore_state(self, s: _GraphState) -> None:
+        self._problem, self._graph, self._values, self._isam = s.problem, s.graph, s.values, s.isam
+        self._n_held, self._n_obs, self._global_rms = s.n_held, s.n_obs, s.global_rms
 
     def _catch_up(
         self,
