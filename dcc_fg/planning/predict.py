@@ -127,6 +127,16 @@ class Placement:
             self.distance[idx], self.centre[idx],
         )  # fmt: skip
 
+    @staticmethod
+    def concat(parts: list[Placement]) -> Placement:
+        """The placements of ``parts`` (at least one) one after the other."""
+        return Placement(
+            *(
+                np.concatenate([getattr(p, f) for p in parts])
+                for f in ("T_st", "seen_s", "seen_d", "ok", "full", "distance", "centre")
+            )
+        )
+
     def describe(self, g: int) -> dict[str, Any]:
         """Where to hold the target for view g: distance (m), centre in s (x right, y down, z forward; m),
         tilt of the board normal from the static optical axis (deg), the direction its face points
@@ -266,36 +276,21 @@ def candidate_poses(view: ViewModel, T_ds: FloatArray) -> tuple[Placement, NDArr
         for t in POSE_TILTS_DEG
         for k in range(POSE_TILT_DIRECTIONS)
     ]
-    keep_T, keep_s, keep_d, keep_c, owner = [], [], [], [], []
+    parts, owner = [], []
     for z in dists:
         T_face, aim = _facing_pose(c_d, axis_d, z, centre_t)
+        ray_s = aim / np.linalg.norm(aim, axis=1, keepdims=True)
+        ray_d = aim - c_d
+        ray_d /= np.linalg.norm(ray_d, axis=1, keepdims=True)
         for tilt, direction in turns:
-            n = T_face[:, :3, 2] if tilt == 0.0 else _tilted(T_face[:, :3, 2], T_face, tilt, direction)
-            T = T_face if tilt == 0.0 else _board_pose(n, aim, centre_t)
-            vs, vd = _seen(view, T, T_ds)
-            ray_s = aim / np.linalg.norm(aim, axis=1, keepdims=True)
-            ray_d = aim - c_d
-            ray_d /= np.linalg.norm(ray_d, axis=1, keepdims=True)
-            good = vs.all(axis=1) & vd.all(axis=1)
-            good &= (np.einsum("gi,gi->g", n, ray_s) >= cos_max) & (np.einsum("gi,gi->g", n, ray_d) >= cos_max)
+            n = _tilted(T_face[:, :3, 2], T_face, tilt, direction)
+            pl = placement_at(view, _board_pose(n, aim, centre_t), T_ds)
+            good = pl.full & (np.einsum("gi,gi->g", n, ray_s) >= cos_max) & (np.einsum("gi,gi->g", n, ray_d) >= cos_max)
             idx = np.flatnonzero(good)
-            keep_T.append(T[idx])
-            keep_s.append(vs[idx])
-            keep_d.append(vd[idx])
-            keep_c.append(aim[idx])
+            parts.append(pl.take(idx))
             owner.append(idx)
-    P = int(sum(len(i) for i in owner))
-    placement = Placement(
-        np.concatenate(keep_T),
-        np.concatenate(keep_s),
-        np.concatenate(keep_d),
-        np.ones(P, dtype=bool),
-        np.ones(P, dtype=bool),
-        np.linalg.norm(np.concatenate(keep_c), axis=1),
-        np.concatenate(keep_c),
-    )
-    assert G == 0 or P == 0 or int(np.concatenate(owner).max()) < G
-    return placement, np.concatenate(owner).astype(np.int64)
+    assert G == 0 or int(np.concatenate(owner, dtype=np.int64).max(initial=-1)) < G
+    return Placement.concat(parts), np.concatenate(owner).astype(np.int64)
 
 
 def _gram(J: FloatArray, K: FloatArray) -> FloatArray:
