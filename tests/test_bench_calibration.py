@@ -2,28 +2,13 @@
 
 from __future__ import annotations
 
-import importlib.util
-import sys
-from pathlib import Path
-from types import ModuleType
-
 import pytest
-
-BENCH = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_calibration.py"
-
-
-def _load_bench() -> ModuleType:
-    spec = importlib.util.spec_from_file_location("bench_calibration", BENCH)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses resolve annotations through sys.modules
-    spec.loader.exec_module(module)
-    return module
+from conftest import load_benchmark
 
 
 @pytest.mark.slow
 def test_bench_calibration_small_problem_same_cost() -> None:
-    bench = _load_bench()
+    bench = load_benchmark("bench_calibration")
     out = bench.run(seed=0, snapshots=12, verbose=False)
     # both solvers start from the values calibrate() hands to GTSAM
     assert out["initial_cost_shared"] == pytest.approx(out["calibrate_initial_cost"], rel=1e-9)

@@ -23,13 +23,11 @@ magnitude).
 
 from __future__ import annotations
 
-import importlib.util
-import sys
 from pathlib import Path
-from types import ModuleType
 
 import numpy as np
 import pytest
+from conftest import load_benchmark
 
 from dcc_fg.sim.calibration_scene import simulate_calibration
 from dcc_fg.sim.write_dataset import default_target, load_ground_truth, scene_config
@@ -37,20 +35,9 @@ from dcc_fg.studies.calibration_accuracy import cramer_rao_bound
 
 pytestmark = pytest.mark.slow  # renders bags and runs dcc-fg calibrate in a child process (~45 s)
 
-BENCH = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_memory.py"
-
-
-def _load_bench() -> ModuleType:
-    spec = importlib.util.spec_from_file_location("bench_memory", BENCH)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
-
 
 def test_bench_memory_runs_and_streams(tmp_path: Path) -> None:
-    bench = _load_bench()
+    bench = load_benchmark("bench_memory")
     small = bench.run(frames_n=20, fmt="ros2", workdir=tmp_path / "small", verbose=False)
     assert small["load"]["snapshots"] == 20
     cal = small["calibrate"]
@@ -68,7 +55,7 @@ def test_bench_memory_runs_and_streams(tmp_path: Path) -> None:
 
 
 def test_bench_memory_gimbal_auto_init(tmp_path: Path) -> None:
-    bench = _load_bench()
+    bench = load_benchmark("bench_memory")
     n, seed = 30, 0
     res = bench.run(frames_n=n, fmt="ros2", workdir=tmp_path / "gimbal", verbose=False, joints=2, seed=seed)
     assert res["joints"] == 2 and res["frames"] == n and res["bag_bytes"] > 2 * n * bench.SIZE[0] * bench.SIZE[1]

@@ -5,27 +5,11 @@ on one L = 1 member. The full study (20 members) is ``python benchmarks/bench_pl
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import math
-import sys
-from pathlib import Path
-from types import ModuleType
 
 import pytest
+from conftest import load_benchmark
 from scipy.stats import chi2
-
-BENCH_DIR = Path(__file__).resolve().parents[1] / "benchmarks"
-
-
-def _load(name: str) -> ModuleType:
-    if str(BENCH_DIR) not in sys.path:
-        sys.path.insert(0, str(BENCH_DIR))  # bench_plan_cost imports bench_plan
-    spec = importlib.util.spec_from_file_location(name, BENCH_DIR / f"{name}.py")
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses resolve annotations through sys.modules
-    spec.loader.exec_module(module)
-    return module
 
 
 @pytest.mark.slow
@@ -34,7 +18,7 @@ def test_plan_member_19_needs_fewer_snapshots_and_predicts_its_error() -> None:
     tolerance with at most half the snapshots of random angles and of the grid, and its final
     calibration's error at a held-out angle is consistent with the prediction (NEES inside the 99.9 %
     interval of chi2(6 - L))."""
-    bench = _load("bench_plan")
+    bench = load_benchmark("bench_plan")
     args = argparse.Namespace(step=2, max_added=10, relative=1.0, tolerance=None)
     r = bench.run_member(19, args)
     assert not r.failure and r.joints == 2
@@ -48,7 +32,8 @@ def test_plan_member_19_needs_fewer_snapshots_and_predicts_its_error() -> None:
 
 @pytest.mark.slow
 def test_plan_cost_benchmark_runs(capsys: pytest.CaptureFixture[str]) -> None:
-    bench = _load("bench_plan_cost")
+    load_benchmark("bench_plan")  # bench_plan_cost imports it by name
+    bench = load_benchmark("bench_plan_cost")
     assert bench.main(["--seeds", "8", "--k", "2"]) == 0
     out = capsys.readouterr().out
     assert "member 8 L=1: K=2 plan" in out and "ratio" in out

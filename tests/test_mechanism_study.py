@@ -3,14 +3,12 @@ records (fast) and one small rendered member per L end to end (slow)."""
 
 from __future__ import annotations
 
-import importlib.util
 import math
-import sys
 from pathlib import Path
-from types import ModuleType
 
 import numpy as np
 import pytest
+from conftest import load_benchmark
 from scipy.stats import chi2
 
 from dcc_fg.studies.mechanism_study import (
@@ -118,20 +116,8 @@ def test_small_member_end_to_end(n_joints: int, tmp_path: Path) -> None:
     assert d["seed"] == 1 and d["n_joints"] == n_joints and d["description"]
 
 
-BENCH = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_random_mechanisms.py"
-
-
-def _load_bench() -> ModuleType:
-    spec = importlib.util.spec_from_file_location("bench_random_mechanisms", BENCH)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
-
-
 def test_bench_table_marks_each_L() -> None:
-    bench = _load_bench()
+    bench = load_benchmark("bench_random_mechanisms")
     ok = [_record(s, 1) for s in range(5)]
     failing = [_record(s, 2) for s in range(3)] + [_record(3, 2, success=False)]
     text = bench.table([summarize(ok, 1), summarize(failing, 2)])
