@@ -10,6 +10,8 @@ from dcc_fg.vio.backend.landmarks import (
     LandmarkMap,
     landmark_is_good,
     outside_gate,
+    prediction_error,
+    prediction_errors,
     triangulate_track,
     triangulate_tracks,
 )
@@ -53,6 +55,49 @@ def test_observation_gate() -> None:
     assert not outside_gate(T_cW, p, np.zeros(2), 0.01)
     assert outside_gate(T_cW, p, np.array([0.02, 0.0]), 0.01)
     assert outside_gate(T_cW, -p, np.zeros(2), 0.01)  # behind the camera
+
+
+def test_batched_prediction_errors_equal_one_at_a_time() -> None:
+    """Random camera, landmarks in front and behind, observations with random errors."""
+    rng = np.random.default_rng(4)
+    for _ in range(20):
+        R = gtsam.Rot3.Expmap(rng.normal(0, 1, 3)).matrix()
+        T_cW = np.eye(4)
+        T_cW[:3, :3], T_cW[:3, 3] = R, rng.normal(0, 1, 3)
+        p_W = rng.normal(0, 5, (30, 3))
+        z = rng.normal(0, 0.5, (30, 2))
+        one = np.array([prediction_error(T_cW, p, zz) for p, zz in zip(p_W, z, strict=True)])
+        batch = prediction_errors(T_cW, p_W, z)
+        assert np.isinf(one).any() and np.isfinite(one).any()
+        np.testing.assert_array_equal(np.isinf(batch), np.isinf(one))
+        np.testing.assert_allclose(batch[np.isfinite(one)], one[np.isfinite(one)], rtol=1e-12, atol=1e-15)
+    assert prediction_errors(np.eye(4), np.zeros((0, 3)), np.zeros((0, 2))).shape == (0,)
+
+
+def test_landmark_persistence_policy() -> None:
+    """``all``: a landmark's window time is its newest observation; ``gimbal``: only landmarks a gimbal camera
+    saw keep that, a static-only one keeps the time of its oldest keyframe and leaves the window with it."""
+    p = np.array([0.3, 0.2, 6.0])
+    poses = {(k, cam): _camera(0.3 * k + 0.25 * cam) for k in range(3) for cam in (0, 1)}
+    times = {k: 100 * (k + 1) for k in range(3)}
+
+    def camera_pose(k: int, cam: int) -> np.ndarray:
+        return poses[(k, cam)]
+
+    for persist, static_only_stamp in (("all", 300), ("gimbal", 100), ("none", 100)):
+        lms = LandmarkMap(persist=persist)
+        for k in range(3):
+            lms.buffer(1, k, 0, _project(poses[(k, 0)], p))  # static camera only
+            lms.buffer(2, k, 0, _project(poses[(k, 0)], p))  # both cameras
+            lms.buffer(2, k, 1, _project(poses[(k, 1)], p))
+        made = {m.index: m for m in lms.triangulate_ready(2, times[2], times, 0, camera_pose, OPT)}
+        static_lm, shared_lm = lms.active[1], lms.active[2]
+        assert set(made) == {static_lm, shared_lm}
+        assert lms.first_ns[static_lm] == 100 and lms.last_seen_ns[static_lm] == 300
+        assert lms.stamp_ns(static_lm) == static_only_stamp
+        assert lms.stamp_ns(shared_lm) == (100 if persist == "none" else 300)
+        lms.refresh_from({}, 10_000)  # both leave: the persistent set forgets them
+        assert lms.persistent == set()
 
 
 def test_triangulate_track_prefers_static_and_falls_back_on_both_cameras() -> None:

@@ -55,6 +55,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 from numpy.typing import NDArray
+from scipy.spatial import cKDTree
 
 from dcc_fg.data.cameras import RunCamera
 from dcc_fg.data.vio import CameraTracks, TrackFrame
@@ -367,20 +368,26 @@ class CameraTracker:
         return n_bad
 
     def enforce_spacing(self) -> None:
-        """Drop the younger of two tracks closer than ``min_distance`` (tracks drift together)."""
-        if len(self) < 2:
+        """Drop the younger of two tracks closer than ``min_distance`` (tracks drift together): oldest first,
+        a track is kept unless a kept one lies within ``min_distance`` pixels (rounded pixel positions)."""
+        n = len(self)
+        if n < 2:
             return
-        order = np.argsort(-self.ages, kind="stable")
-        w, h = self.camera.resolution
-        mask = np.full((h, w), 255, dtype=np.uint8)
-        keep = np.zeros(len(self), dtype=bool)
         r = int(self.config.min_distance)
-        for i in order:
-            x, y = int(round(float(self.pts[i, 0]))), int(round(float(self.pts[i, 1])))
-            if mask[min(max(y, 0), h - 1), min(max(x, 0), w - 1)]:
-                keep[i] = True
-                cv2.circle(mask, (x, y), r, 0, -1)
-        self._mask = mask
+        pairs = cKDTree(np.rint(self.pts.astype(np.float64))).query_pairs(r, output_type="ndarray")
+        if pairs.shape[0] == 0:
+            return
+        neighbours: dict[int, list[int]] = {}
+        for i, j in pairs.tolist():
+            neighbours.setdefault(i, []).append(j)
+            neighbours.setdefault(j, []).append(i)
+        keep = np.ones(n, dtype=bool)
+        blocked: set[int] = set()
+        for i in sorted(neighbours, key=lambda i: (-int(self.ages[i]), i)):
+            if i in blocked:
+                keep[i] = False
+            else:
+                blocked.update(neighbours[i])
         self.keep(keep)
 
     def detect(self) -> None:
@@ -390,12 +397,10 @@ class CameraTracker:
         if need <= 0 or (len(self) >= self.config.refill_ratio * self.config.max_features):
             return
         w, h = self.camera.resolution
-        mask = getattr(self, "_mask", None)
-        if mask is None or mask.shape != (h, w) or len(self) < 2:
-            mask = np.full((h, w), 255, dtype=np.uint8)
-            r = int(self.config.min_distance)
-            for x, y in self.pts:
-                cv2.circle(mask, (int(round(float(x))), int(round(float(y)))), r, 0, -1)
+        mask = np.full((h, w), 255, dtype=np.uint8)
+        r = int(self.config.min_distance)
+        for x, y in np.rint(self.pts).astype(int).tolist():
+            cv2.circle(mask, (x, y), r, 0, -1)
         b = self.config.border
         mask[:b, :] = 0
         mask[h - b :, :] = 0
@@ -404,7 +409,6 @@ class CameraTracker:
         corners = cv2.goodFeaturesToTrack(
             self.gray, need, self.config.quality_level, self.config.min_distance, mask=mask, blockSize=3
         )
-        self._mask = None
         if corners is None:
             return
         new = corners.reshape(-1, 2).astype(np.float32)

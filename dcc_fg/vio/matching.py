@@ -30,13 +30,13 @@ def orientation_deg(gray: NDArray[np.uint8], pts: FloatArray) -> FloatArray:
     if n == 0:
         return np.zeros(0)
     padded = cv2.copyMakeBorder(gray, _HALF, _HALF, _HALF, _HALF, cv2.BORDER_REFLECT_101)
-    cx = np.clip(np.rint(pts[:, 0]).astype(np.int64), 0, gray.shape[1] - 1) + _HALF
-    cy = np.clip(np.rint(pts[:, 1]).astype(np.int64), 0, gray.shape[0] - 1) + _HALF
-    rows = cy[:, None] + _yy.ravel()[None, :]
-    cols = cx[:, None] + _xx.ravel()[None, :]
-    patches = padded[rows, cols].astype(np.float32)
-    m10 = patches @ _WX
-    m01 = patches @ _WY
+    cx = np.clip(np.rint(pts[:, 0]).astype(np.int64), 0, gray.shape[1] - 1)
+    cy = np.clip(np.rint(pts[:, 1]).astype(np.int64), 0, gray.shape[0] - 1)
+    # (N, 31, 31) patches centred on the points: the padded image's window view, gathered per point
+    patches = np.lib.stride_tricks.sliding_window_view(padded, (PATCH, PATCH))[cy, cx]
+    flat = patches.reshape(n, PATCH * PATCH).astype(np.float32)
+    m10 = flat @ _WX
+    m01 = flat @ _WY
     return np.degrees(np.arctan2(m01, m10)) % 360.0
 
 

@@ -96,6 +96,14 @@ def prediction_error(T_cW: FloatArray, p_W: FloatArray, z: FloatArray) -> float:
     return float("inf") if p_c[2] <= 0 else float(np.linalg.norm(p_c[:2] / p_c[2] - z))
 
 
+def prediction_errors(T_cW: FloatArray, p_W: FloatArray, z: FloatArray) -> FloatArray:
+    """:func:`prediction_error` of landmarks ``p_W`` (N, 3) observed at ``z`` (N, 2), at once (N,)."""
+    p_c = p_W @ T_cW[:3, :3].T + T_cW[:3, 3]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        err = np.linalg.norm(p_c[:, :2] / p_c[:, 2:3] - z, axis=1)
+    return np.where(p_c[:, 2] <= 0, np.inf, err)
+
+
 def outside_gate(T_cW: FloatArray, p_W: FloatArray, z: FloatArray, max_error: float) -> bool:
     """True if landmark ``p_W`` is behind camera ``T_cW`` (W -> camera) or projects farther than
     ``max_error`` (normalized units) from the observation ``z``."""
@@ -175,17 +183,23 @@ class LandmarkMap:
 
     ``active`` maps track id -> landmark index, ``position`` landmark index -> Point3 in W,
     ``last_seen_ns`` landmark index -> time of its newest observation; ``count`` landmarks made.
+    ``first_ns`` landmark index -> time of the oldest keyframe that saw it when it was made; ``persistent``
+    the landmarks that stay in the window while they are seen: every one with ``persist`` ``all``, those a
+    camera on a gimbal saw with ``gimbal``; the others leave with that oldest keyframe (:meth:`stamp_ns`).
     ``rigid``: run indices of the cameras rigid to the body. A track seen by two of them in one keyframe
     (a static stereo pair) is ready at once, without waiting for ``min_track_keyframes``: the baseline
     between the cameras makes it metric.
     """
 
-    def __init__(self, rigid: frozenset[int] = frozenset({0})) -> None:
+    def __init__(self, rigid: frozenset[int] = frozenset({0}), persist: str = "all") -> None:
         self.rigid = rigid
+        self.persist = persist
         self.tracks: dict[int, Track] = {}
         self.active: dict[int, int] = {}
         self.position: dict[int, FloatArray] = {}
         self.last_seen_ns: dict[int, int] = {}
+        self.first_ns: dict[int, int] = {}
+        self.persistent: set[int] = set()
         self.count = 0
 
     def clear(self) -> None:
@@ -193,18 +207,34 @@ class LandmarkMap:
         self.active.clear()
         self.position.clear()
         self.tracks.clear()
+        self.persistent.clear()
+
+    def stamp_ns(self, lm: int) -> int:
+        """The time the smoother's window gives landmark ``lm`` (it is marginalized once that time is more
+        than the lag old): its newest observation for a persistent landmark, else the time of the oldest
+        keyframe that saw it when it was made, so that it leaves the window with that keyframe and its
+        other observations become a prior on the keyframe states instead of tying every landmark the
+        leaving keyframe saw into one dense marginal (``VioOptions.persistent_landmarks``)."""
+        return self.last_seen_ns[lm] if lm in self.persistent else self.first_ns[lm]
 
     def buffer(self, track_id: int, k: int, cam: int, z: FloatArray) -> None:
         """Remember an observation of a track that is not a landmark yet."""
         self.tracks.setdefault(track_id, Track()).obs.append((k, cam, z))
 
-    def add(self, track_id: int, p_W: FloatArray, t_ns: int) -> int:
-        """Make track ``track_id`` landmark number :attr:`count` at ``p_W``; returns its index."""
+    def add(
+        self, track_id: int, p_W: FloatArray, t_ns: int, first_ns: int | None = None, persistent: bool = True
+    ) -> int:
+        """Make track ``track_id`` landmark number :attr:`count` at ``p_W``, seen last at ``t_ns`` and first
+        (oldest keyframe of its observations) at ``first_ns`` (default ``t_ns``); returns its index.
+        ``persistent``: it stays in the window while it is seen (:meth:`stamp_ns`)."""
         lm = self.count
         self.count += 1
         self.active[track_id] = lm
         self.position[lm] = p_W
         self.last_seen_ns[lm] = t_ns
+        self.first_ns[lm] = t_ns if first_ns is None else first_ns
+        if persistent:
+            self.persistent.add(lm)
         return lm
 
     def triangulate_ready(
@@ -250,13 +280,18 @@ class LandmarkMap:
         # landmarks until max_new_landmarks are made; the tracks after that are left as they are
         results = triangulate_tracks([self.tracks[tid].obs for tid, _ in ready], pose, o, self.rigid)
         for (tid, n_kf), (p, ok) in zip(ready, results, strict=True):
+            first_ns = keyframe_times[min(ob[0] for ob in self.tracks[tid].obs)]
             if len(made) >= o.max_new_landmarks:
                 break
             if not ok:
                 if n_kf > 3 * o.min_track_keyframes:
                     del self.tracks[tid]  # never converges: give up on this track
                 continue
-            made.append(NewLandmark(self.add(tid, p, t_ns), p, self.tracks[tid].obs))
+            obs = self.tracks[tid].obs
+            persistent = self.persist == "all" or (
+                self.persist == "gimbal" and any(cam not in self.rigid for _, cam, _ in obs)
+            )
+            made.append(NewLandmark(self.add(tid, p, t_ns, first_ns, persistent), p, obs))
             del self.tracks[tid]
         return made
 
@@ -275,6 +310,7 @@ class LandmarkMap:
             if self.last_seen_ns[lm] < cutoff_ns or (missing_leave and lm not in positions):
                 del self.active[tid]
                 self.position.pop(lm, None)
+                self.persistent.discard(lm)
                 gone.append(lm)
         return gone
 

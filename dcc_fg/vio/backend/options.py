@@ -19,6 +19,7 @@ NS = 1_000_000_000
 MODES = ("dcc", "scc", "mono")
 INITIALIZATIONS = ("auto", "standstill", "motion")
 LANDMARKS = ("explicit", "smart")
+PERSISTENT_LANDMARKS = ("all", "gimbal", "none")
 #: Largest |time offset| accepted as a start value, s.
 MAX_TIME_OFFSET_S = 0.5
 
@@ -78,6 +79,13 @@ class VioOptions:
     2.5 s ``lag``: its factors restart when their oldest keyframe leaves the window): 0.69x the main
     process's CPU time and 0.90x the translation RMSE of ``explicit`` at 1.5 s, but 1.4x the first joint's
     RMSE (with a 1.5 s lag: 0.56x the CPU, 1.2-1.45x the translation RMSE).
+    ``persistent_landmarks`` (``explicit`` landmarks): which landmarks stay in the window while they are
+    tracked: ``all``; ``gimbal``, those a camera on a gimbal saw; ``none``. The others leave with the oldest
+    keyframe that saw them when they were made (:meth:`~.landmarks.LandmarkMap.stamp_ns`): their
+    observations become a prior on the keyframe states and a track that goes on is triangulated afresh.
+    A persistent landmark the leaving keyframe saw stays in that keyframe's marginal, so every one of them
+    is tied into one dense prior: the main cost of the smoother (the README's VIO throughput section has
+    the measured speed and accuracy of each choice).
     ``smart`` needs every observation on an identity-mount camera pose: the incremental smoother,
     estimated time offsets that stay estimated (``time_offset_freeze_sigma`` None),
     ``gimbal_factor='camera_pose'`` and no further cameras.
@@ -98,6 +106,7 @@ class VioOptions:
     triangulation_gate: float = 4.0
     observation_gate: float = 30.0
     max_new_landmarks: int = 150
+    persistent_landmarks: str = "all"
     standstill_window: float = 0.5
     prior_position_sigma: float = 1e-3
     prior_rotation_sigma: float = 1e-3
@@ -146,6 +155,10 @@ class VioOptions:
             raise ValueError(f"smoother '{self.smoother}' is not one of incremental, batch")
         if self.landmarks not in LANDMARKS:
             raise ValueError(f"landmarks '{self.landmarks}' is not one of {', '.join(LANDMARKS)}")
+        if self.persistent_landmarks not in PERSISTENT_LANDMARKS:
+            raise ValueError(
+                f"persistent_landmarks '{self.persistent_landmarks}' is not one of {', '.join(PERSISTENT_LANDMARKS)}"
+            )
         if self.landmarks == "smart" and (
             self.smoother != "incremental"
             or not self.estimate_time_offsets

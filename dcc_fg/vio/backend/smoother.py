@@ -49,7 +49,7 @@ from dcc_fg.vio.backend.keys import (
     theta_key,
     velocity_key,
 )
-from dcc_fg.vio.backend.landmarks import LandmarkMap, prediction_error
+from dcc_fg.vio.backend.landmarks import LandmarkMap, prediction_errors
 from dcc_fg.vio.backend.options import NS, FloatArray, InitialState, VioOptions, VioResult
 from dcc_fg.vio.backend.residuals import CameraResiduals
 from dcc_fg.vio.backend.state import KeyframeState, result_from_states
@@ -103,7 +103,10 @@ class VioSmoother:
         self.residuals = self._camera_residuals(cameras, calibration)
         self.exposure = ExposureModel(options, imu, self._mounts())
         self.window = FixedLagWindow(options)
-        self.landmarks = LandmarkMap(frozenset(c for c in (STATIC, *self.rig.extra) if self.rig.is_rigid(c)))
+        self.landmarks = LandmarkMap(
+            frozenset(c for c in (STATIC, *self.rig.extra) if self.rig.is_rigid(c)),
+            options.persistent_landmarks,
+        )
         self.structureless: StructurelessLandmarks | None = None
         if options.landmarks == "smart":
             if cameras:
@@ -666,12 +669,18 @@ class VioSmoother:
             T_cW = chain.inv_se3(self._T_Wc(k, cam, self._theta_for(k, cam, values)))
             if self.residuals is not None:
                 self.residuals.offer(cam, ids.size)
-            for tid, z in zip(ids.tolist(), xy, strict=True):
-                lm = lms.active.get(tid)
+            tids = ids.tolist()
+            lm_of = [lms.active.get(tid) for tid in tids]
+            known = [i for i, lm in enumerate(lm_of) if lm is not None]
+            p_W = np.array([lms.position[lm_of[i]] for i in known]).reshape(-1, 3)
+            errors = prediction_errors(T_cW, p_W, xy[known])
+            error_of = dict(zip(known, errors.tolist(), strict=True))
+            for i, (tid, z) in enumerate(zip(tids, xy, strict=True)):
+                lm = lm_of[i]
                 if lm is None:
                     lms.buffer(tid, k, cam, z)
                     continue
-                err = prediction_error(T_cW, lms.position[lm], z)
+                err = error_of[i]
                 if err > o.gate * o.sigma:
                     self.stats["gated"] += 1
                     if self.residuals is not None:  # a gated observation counts with its predicted error
@@ -680,7 +689,7 @@ class VioSmoother:
                 self._add_observation(k, cam, lm, z, graph)
                 lms.last_seen_ns[lm] = t
                 if self.structureless is None:
-                    stamps[landmark_key(lm)] = t
+                    stamps[landmark_key(lm)] = lms.stamp_ns(lm)
         self._triangulate_ready(k, t, graph, values, stamps)
 
     def _add_observation(self, k: int, cam: int, lm: int, z: FloatArray, graph: gtsam.NonlinearFactorGraph) -> None:
@@ -753,7 +762,7 @@ class VioSmoother:
                 key = landmark_key(new.index)
                 values.insert(key, new.p_W)
                 graph.add(gtsam.PriorFactorPoint3(key, new.p_W, noise))
-                stamps[key] = t
+                stamps[key] = self.landmarks.stamp_ns(new.index)
             for kk, cam, z in new.obs:
                 self._add_observation(kk, cam, new.index, z, graph)
 
