@@ -9,7 +9,8 @@ their thresholds (``options``: :class:`~dcc_fg.vio.backend.options.VioOptions`; 
 * ``finite``: every pose, velocity, bias and joint angle (further gimbal chains' too) finite;
 * ``cameras.<name>`` (warning, N-camera runs): each further camera contributed landmark observations;
 * ``observations.<name>`` (N-camera runs): the fraction of each camera's tracks that became landmark
-  observations at least :data:`MIN_USED_RATIO` times cam0's;
+  observations at least :data:`MIN_USED_RATIO` times cam0's, and cam0's own at least
+  :data:`MIN_USED_FRACTION` (a camera that does not fit can wreck every camera's landmarks);
 * ``residuals.<name>`` (N-camera runs): each camera's median reprojection residual (px,
   :mod:`dcc_fg.vio.backend.residuals`) at most :data:`MAX_RESIDUAL_RATIO` times cam0's: all cameras go
   through the same front end, so one that fits far worse than cam0 has a wrong ``T_cs`` / ``tau_d`` or
@@ -188,12 +189,39 @@ def _residual_checks(stats: dict[str, Any]) -> list[HealthCheck]:
 #: correct extrinsics: 0.97-1.07 (rendered cluster flights, fractions 0.79-0.88), 1.01 (EuRoC's stereo pair);
 #: the simulated stereo partner 1 deg off: 0 to 0.34 (the run is refused by one check or the other).
 MIN_USED_RATIO = 0.2
+#: Smallest fraction of cam0's tracks that became observations in an N-camera run (``observations.cam0``):
+#: 0.79-0.88 with correct extrinsics (above); 0.007 on a 10 s simulated stereo+gimbal flight whose stereo
+#: partner is 1 deg off, where no camera's landmarks survive (every ratio to cam0 then looks normal).
+MIN_USED_FRACTION = 0.2
+
+_USED_HINT = (
+    "their stereo tracks fail triangulation or their observations are gated): check its extrinsics (T_cs / tau_d), "
+    "intrinsics and triggering; or leave it out with --cameras"
+)
 
 
 def _used_checks(stats: dict[str, Any]) -> list[HealthCheck]:
     """``observations.<name>``: the fraction of each camera's tracks that became observations, against
-    cam0's (:meth:`~dcc_fg.vio.backend.residuals.CameraResiduals.used_fractions`)."""
+    cam0's, and cam0's own (:meth:`~dcc_fg.vio.backend.residuals.CameraResiduals.used_fractions`)."""
     out = []
+    fractions = stats.get("observations_used_fraction") or {}
+    ref = fractions.get("cam0")
+    if ref is not None and len(fractions) > 1:
+        ok = float(ref) >= MIN_USED_FRACTION
+        out.append(
+            HealthCheck(
+                "observations.cam0",
+                ok,
+                f"{100 * float(ref):.1f} % of cam0's tracks became landmark observations (limit "
+                f"{100 * MIN_USED_FRACTION:g} %)",
+                ""
+                if ok
+                else "the cameras' features do not fit each other (a further camera's extrinsics can wreck every "
+                "camera's landmarks: " + _USED_HINT,
+                float(ref),
+                MIN_USED_FRACTION,
+            )
+        )
     for name, frac, ref, ratio in _against_cam0(stats.get("observations_used_fraction") or {}):
         ok = ratio >= MIN_USED_RATIO
         out.append(
@@ -202,11 +230,7 @@ def _used_checks(stats: dict[str, Any]) -> list[HealthCheck]:
                 ok,
                 f"{100 * frac:.1f} % of {name}'s tracks became landmark observations, {ratio:.2f}x cam0's "
                 f"{100 * ref:.1f} % (limit {MIN_USED_RATIO:g}x)",
-                ""
-                if ok
-                else f"{name}'s features do not fit the other cameras' (its stereo tracks fail triangulation or its "
-                "observations are gated): check its extrinsics (T_cs / tau_d), intrinsics and triggering; or leave "
-                "it out with --cameras",
+                "" if ok else f"{name}'s features do not fit the other cameras' (" + _USED_HINT,
                 ratio,
                 MIN_USED_RATIO,
             )

@@ -26,8 +26,12 @@ Factors:
 Landmarks (:mod:`.landmarks`) are triangulated (linear DLT over all buffered observations, both
 cameras) once a track has ``min_track_keyframes`` keyframes, enough parallax, positive depths and
 small reprojection errors; the smoother (gtsam ``IncrementalFixedLagSmoother`` or
-``BatchFixedLagSmoother``, :mod:`.window`) then marginalizes every variable whose last keyframe left
-the window of ``lag`` seconds, and restarts the window from the IMU prediction after a failed update.
+``BatchFixedLagSmoother``, :mod:`.window`) then marginalizes every variable whose window time is more
+than ``lag`` seconds old, and restarts the window from the IMU prediction after a failed update. A
+keyframe's window time is its own; a persistent landmark's (by default every one) is its newest
+observation; a landmark that is not persistent (``persistent_landmarks``) gets the time of the oldest
+keyframe that saw it when it was made, so it leaves with that keyframe and its observations become a prior
+on keyframe states only (a track that goes on is triangulated afresh; :meth:`.landmarks.LandmarkMap.stamp_ns`).
 
 Gimbal camera outliers use the two-stage scheme the paper proposes as future work (:mod:`.joints`):
 the joint angles of a new keyframe are first fitted (Huber, no rejection) to the gimbal observations

@@ -77,7 +77,8 @@ class VioOptions:
     Without it 2 of 3 runs of that flight drifted or diverged; at 4 sigmas a 20 s tracks-level flight had
     3 failed updates. Measured on that flight (``benchmarks/bench_vio.py --smart``, which runs it with a
     2.5 s ``lag``: its factors restart when their oldest keyframe leaves the window): 0.69x the main
-    process's CPU time and 0.90x the translation RMSE of ``explicit`` at 1.5 s, but 1.4x the first joint's
+    process's CPU time and 0.90x the translation RMSE of ``explicit`` at the former defaults (every landmark
+    persistent, 1.5 s lag), but 1.4x the first joint's
     RMSE (with a 1.5 s lag: 0.56x the CPU, 1.2-1.45x the translation RMSE).
     ``persistent_landmarks`` (``explicit`` landmarks): which landmarks stay in the window while they are
     tracked: ``all``; ``gimbal``, those a camera on a gimbal saw; ``none``. The others leave with the oldest
