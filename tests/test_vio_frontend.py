@@ -318,3 +318,24 @@ def test_orientation_follows_image_rotation() -> None:
     pts_r = np.column_stack([pts[:, 1], 199 - pts[:, 0]])
     d = (orientation_deg(rot, pts_r) - orientation_deg(img, pts)) % 360.0
     assert np.allclose(d, 270.0, atol=1.0), d
+
+
+def test_orientation_is_the_intensity_centroid_of_the_disc() -> None:
+    """Against a per-point reference: the angle of (m10, m01) over the 31-pixel disc around the rounded
+    pixel, the image reflected (101) beyond its border; points near and beyond the border included."""
+    rng = np.random.default_rng(7)
+    img = procedural_texture(160, 120, 0.03, 5)
+    pts = np.vstack([rng.uniform([0, 0], [159, 119], (40, 2)), [[-2.0, 3.0], [158.6, 119.4], [3.2, 60.0]]])
+    h = 15
+    padded = np.pad(img.astype(np.float64), h, mode="reflect")  # numpy's "reflect" is OpenCV's REFLECT_101
+    yy, xx = np.mgrid[-h : h + 1, -h : h + 1]
+    disc = xx**2 + yy**2 <= h**2
+    expected = []
+    for x, y in pts:
+        cx = int(np.clip(np.rint(x), 0, img.shape[1] - 1)) + h
+        cy = int(np.clip(np.rint(y), 0, img.shape[0] - 1)) + h
+        patch = padded[cy - h : cy + h + 1, cx - h : cx + h + 1] * disc
+        expected.append(np.degrees(np.arctan2((patch * yy).sum(), (patch * xx).sum())) % 360.0)
+    got = orientation_deg(img, pts)
+    diff = (got - np.array(expected) + 180.0) % 360.0 - 180.0
+    assert np.abs(diff).max() < 1e-3, diff
