@@ -140,6 +140,19 @@ def run_mode(
     }
 
 
+def _ratios(r: dict[str, Any], ref: dict[str, Any]) -> dict[str, float]:
+    """Run ``r`` over run ``ref``: wall time, main-process CPU, translation RMSE and (dcc) each joint's RMSE."""
+    ratios = {
+        "wall": r["wall_s"] / ref["wall_s"],
+        "main_cpu": r["cpu_s"] / ref["cpu_s"],
+        "translation_rmse": r["normalized_translation_rmse_percent"] / ref["normalized_translation_rmse_percent"],
+    }
+    if r["joint_rmse_rad"] is not None and ref["joint_rmse_rad"] is not None:
+        for j, (x, y) in enumerate(zip(r["joint_rmse_rad"], ref["joint_rmse_rad"], strict=True)):
+            ratios[f"joint_{j + 1}_rmse"] = x / y
+    return ratios
+
+
 def _line(r: dict[str, Any]) -> str:
     j = r["joint_rmse_rad"]
     jtxt = "" if j is None else "  joint RMSE " + ", ".join(f"{x:.2e}" for x in j) + " rad"
@@ -222,12 +235,10 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             smart = run_mode(flights["dcc"], "dcc", True, landmarks="smart", lag=SMART_LAG)
             out["smart"] = smart
             print(_line(smart))
-            ref = runs[("dcc", True)]
-            out["dcc_smart_over_explicit_time"] = smart["wall_s"] / ref["wall_s"]
-            out["dcc_smart_over_explicit_cpu"] = smart["cpu_s"] / ref["cpu_s"]
-            out["dcc_smart_over_explicit_rmse"] = (
-                smart["normalized_translation_rmse_percent"] / ref["normalized_translation_rmse_percent"]
-            )
+            ratios = _ratios(smart, runs[("dcc", True)])
+            out["dcc_smart_over_explicit_time"] = ratios["wall"]
+            out["dcc_smart_over_explicit_cpu"] = ratios["main_cpu"]
+            out["dcc_smart_over_explicit_rmse"] = ratios["translation_rmse"]
             print(
                 f"dcc: smart / explicit landmarks: wall time {out['dcc_smart_over_explicit_time']:.2f}, main-process "
                 f"CPU {out['dcc_smart_over_explicit_cpu']:.2f}, "
@@ -239,15 +250,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                 out["runs"].append(r)
                 print(_line(r))
                 ref = runs[(mode, True)]
-                ratios = {
-                    "wall": r["wall_s"] / ref["wall_s"],
-                    "main_cpu": r["cpu_s"] / ref["cpu_s"],
-                    "translation_rmse": r["normalized_translation_rmse_percent"]
-                    / ref["normalized_translation_rmse_percent"],
-                }
-                if mode == "dcc":
-                    for j, (x, y) in enumerate(zip(r["joint_rmse_rad"], ref["joint_rmse_rad"], strict=True)):
-                        ratios[f"joint_{j + 1}_rmse"] = x / y
+                ratios = _ratios(r, ref)
                 out[f"{mode}_fast_over_default"] = ratios
                 print(
                     f"{mode}: no persistent landmarks, {FAST_LAG:g} s / defaults (real-time factor "

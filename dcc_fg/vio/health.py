@@ -222,7 +222,7 @@ def _used_checks(stats: dict[str, Any]) -> list[HealthCheck]:
                 MIN_USED_FRACTION,
             )
         )
-    for name, frac, ref, ratio in _against_cam0(stats.get("observations_used_fraction") or {}):
+    for name, frac, ref, ratio in _against_cam0(fractions):
         ok = ratio >= MIN_USED_RATIO
         out.append(
             HealthCheck(

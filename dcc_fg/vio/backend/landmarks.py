@@ -89,25 +89,13 @@ def landmark_is_good(p: FloatArray, T_Wc: FloatArray, xy: FloatArray, options: V
     return bool(landmarks_are_good(np.asarray(p, float)[None], T_Wc[None], xy[None], options)[0])
 
 
-def prediction_error(T_cW: FloatArray, p_W: FloatArray, z: FloatArray) -> float:
-    """Distance (normalized units) of landmark ``p_W``'s projection in camera ``T_cW`` (W -> camera) from
-    the observation ``z``; inf when the landmark is behind the camera."""
-    p_c = T_cW[:3, :3] @ p_W + T_cW[:3, 3]
-    return float("inf") if p_c[2] <= 0 else float(np.linalg.norm(p_c[:2] / p_c[2] - z))
-
-
 def prediction_errors(T_cW: FloatArray, p_W: FloatArray, z: FloatArray) -> FloatArray:
-    """:func:`prediction_error` of landmarks ``p_W`` (N, 3) observed at ``z`` (N, 2), at once (N,)."""
+    """Distances (normalized units) of landmarks ``p_W`` (N, 3, in W)'s projections in camera ``T_cW``
+    (W -> camera) from their observations ``z`` (N, 2); inf for a landmark behind the camera."""
     p_c = p_W @ T_cW[:3, :3].T + T_cW[:3, 3]
     with np.errstate(divide="ignore", invalid="ignore"):
         err = np.linalg.norm(p_c[:, :2] / p_c[:, 2:3] - z, axis=1)
     return np.where(p_c[:, 2] <= 0, np.inf, err)
-
-
-def outside_gate(T_cW: FloatArray, p_W: FloatArray, z: FloatArray, max_error: float) -> bool:
-    """True if landmark ``p_W`` is behind camera ``T_cW`` (W -> camera) or projects farther than
-    ``max_error`` (normalized units) from the observation ``z``."""
-    return prediction_error(T_cW, p_W, z) > max_error
 
 
 def _attempts(obs: list[Observation], rigid: frozenset[int] = frozenset({0})) -> list[list[Observation]]:
@@ -280,7 +268,6 @@ class LandmarkMap:
         # landmarks until max_new_landmarks are made; the tracks after that are left as they are
         results = triangulate_tracks([self.tracks[tid].obs for tid, _ in ready], pose, o, self.rigid)
         for (tid, n_kf), (p, ok) in zip(ready, results, strict=True):
-            first_ns = keyframe_times[min(ob[0] for ob in self.tracks[tid].obs)]
             if len(made) >= o.max_new_landmarks:
                 break
             if not ok:
@@ -288,6 +275,7 @@ class LandmarkMap:
                     del self.tracks[tid]  # never converges: give up on this track
                 continue
             obs = self.tracks[tid].obs
+            first_ns = keyframe_times[min(ob[0] for ob in obs)]
             persistent = self.persist == "all" or (
                 self.persist == "gimbal" and any(cam not in self.rigid for _, cam, _ in obs)
             )

@@ -672,15 +672,16 @@ class VioSmoother:
             tids = ids.tolist()
             lm_of = [lms.active.get(tid) for tid in tids]
             known = [i for i, lm in enumerate(lm_of) if lm is not None]
-            p_W = np.array([lms.position[lm_of[i]] for i in known]).reshape(-1, 3)
-            errors = prediction_errors(T_cW, p_W, xy[known])
-            error_of = dict(zip(known, errors.tolist(), strict=True))
+            errors = np.full(len(tids), np.inf)  # predicted errors of the known landmarks' observations
+            errors[known] = prediction_errors(
+                T_cW, np.array([lms.position[lm_of[i]] for i in known]).reshape(-1, 3), xy[known]
+            )
             for i, (tid, z) in enumerate(zip(tids, xy, strict=True)):
                 lm = lm_of[i]
                 if lm is None:
                     lms.buffer(tid, k, cam, z)
                     continue
-                err = error_of[i]
+                err = float(errors[i])
                 if err > o.gate * o.sigma:
                     self.stats["gated"] += 1
                     if self.residuals is not None:  # a gated observation counts with its predicted error
