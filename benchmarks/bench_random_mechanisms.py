@@ -16,7 +16,7 @@ Exit status 1 when a criterion of issue 14 fails for some L:
 * NEES: mean over members of each member's mean NEES inside chi2.ppf([0.025, 0.975], 6 M) / M.
 
 Run: ``python benchmarks/bench_random_mechanisms.py [--n 50] [--joints 1,2,3] [--snapshots 40]
-[--seed0 0] [--workers 2] [--json OUT.json]``; ``--from-json A.json [B.json ...]`` prints the tables
+[--seed0 0 | --seeds 11,14] [--workers 2] [--json OUT.json]``; ``--from-json A.json [B.json ...]`` prints the tables
 of earlier runs (merged, e.g. one run per L) without running anything. A second table repeats the
 criteria on the members whose joint axes intersect exactly (the family draws them with probability
 1/4): the degenerate mechanisms whose extra directions are held by a prior.
@@ -98,7 +98,8 @@ def table(summaries: list[FamilySummary]) -> str:
 def run_all(joints: list[int], args: argparse.Namespace) -> list[MechanismRecord]:
     """Every member of every L, ``args.workers`` at a time, each printed as it finishes."""
     t0 = time.perf_counter()
-    jobs = [(seed, L) for L in joints for seed in range(args.seed0, args.seed0 + args.n)]
+    seeds = args.seeds if args.seeds is not None else list(range(args.seed0, args.seed0 + args.n))
+    jobs = [(seed, L) for L in joints for seed in seeds]
     records: list[MechanismRecord] = []
     with ProcessPoolExecutor(max_workers=args.workers) as pool:
         futures: dict[Future[MechanismRecord], tuple[int, int]] = {
@@ -154,6 +155,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--joints", default="1,2,3", help="comma-separated L values (default 1,2,3)")
     p.add_argument("--snapshots", type=int, default=40, help="image pairs rendered per member (default 40)")
     p.add_argument("--seed0", type=int, default=0, help="first family seed (default 0)")
+    p.add_argument(
+        "--seeds",
+        type=lambda t: [int(x) for x in t.split(",") if x.strip()],
+        help="comma-separated family seeds to run instead of --seed0/--n (e.g. to rerun the misses of a study)",
+    )
     p.add_argument("--workers", type=int, default=2, help="parallel processes (default 2)")
     p.add_argument("--json", help="write every per-member record and the per-L summaries to this JSON file")
     p.add_argument(

@@ -58,6 +58,7 @@ from dcc_fg.calibration_graph import (
     snapshot_measurements,
     solution_arrays,
     solve_graph,
+    variable_dims,
 )
 from dcc_fg.covariance import (
     COVARIANCE_UNAVAILABLE,
@@ -524,11 +525,11 @@ def calibrate(
             graph.add(factor)
         for factor in held.factors(problem.kin_key, COVARIANCE_PRIOR_WEAKENING):
             weak_graph.add(factor)
-    solved = solve_graph(graph, values, opt.max_iterations)
+    solved = solve_graph(graph, values, opt.max_iterations, variable_dims(problem))
     polish_note = ""
     if held.count and problem.kin_key is not None:
         try:
-            polished = solve_graph(weak_graph, solved.values, opt.max_iterations)
+            polished = solve_graph(weak_graph, solved.values, opt.max_iterations, variable_dims(problem))
             iterations = solved.iterations + polished.iterations
             solved = replace(polished, initial_error=solved.initial_error, iterations=iterations)
         except EstimatorError as exc:  # keep the solution with the full-strength prior, and say so

@@ -13,7 +13,8 @@ Gauge rules (which entries are held, and why): see :mod:`dcc_fg.calibrate`.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import logging
+from dataclasses import dataclass, replace
 from functools import cached_property
 
 import gtsam
@@ -23,6 +24,8 @@ from gtsam.symbol_shorthand import K as KIN
 from numpy.typing import NDArray
 
 from dcc_fg.data import CalibrationDataset, Snapshot
+from dcc_fg.gauss_newton import DENSE_LIMIT as GN_DENSE_LIMIT
+from dcc_fg.gauss_newton import gauss_newton
 from dcc_fg.util.errors import stage
 from factors import chain
 from factors.calibration import (
@@ -39,6 +42,8 @@ from factors.camera import CameraModel
 
 FloatArray = NDArray[np.float64]
 KIN_KEY = KIN(0)
+GN_MAX_ITERATIONS = 50  # dense Gauss-Newton steps per solve (it converges in ~10 where it helps)
+logger = logging.getLogger(__name__)
 GAUGE_SIGMA = 1e-6  # rad, prior on the mean of theta_L (a pure gauge direction: it costs nothing)
 GAUGE_REFERENCE_SNAPSHOTS = 100  # at most this many snapshots carry the mean prior (dcc_fg.calibrate docstring)
 
@@ -227,23 +232,67 @@ class GraphSolution:
     next_decrease: float = float("nan")
 
 
-def solve_graph(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, max_iterations: int) -> GraphSolution:
-    """Levenberg-Marquardt (:func:`lm_params`) from ``values``; a gtsam failure becomes an
-    :class:`~dcc_fg.util.errors.EstimatorError` of the stage "Levenberg-Marquardt solve"."""
+def variable_dims(problem: CalibrationProblem) -> list[tuple[int, int]]:
+    """The variables of :func:`build_graph` as ``(key, tangent dimension)`` pairs, in a fixed order:
+    the free kinematic entries, the joint angles ``J(i)``, then the target poses ``X(i)``."""
+    K, L = problem.n_snapshots, problem.n_joints
+    dims: list[tuple[int, int]] = []
+    if problem.kin_key is not None:
+        dims.append((problem.kin_key, int((~problem.fixed).sum())))
+    if problem.estimate_theta:
+        dims += [(J(i), L) for i in range(K)]
+    if problem.formulation == "bundle":
+        dims += [(X(i), 6) for i in range(K)]
+    return dims
+
+
+def _levenberg_marquardt(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, max_iterations: int) -> GraphSolution:
+    initial_error = graph.error(values)
+    optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, lm_params(max_iterations))
+    result = gtsam.Values(optimizer.optimize())
+    iterations, final_error = optimizer.iterations(), graph.error(result)
+    next_decrease = float("nan")
+    if iterations >= max_iterations:  # stopped on the cap: how much was still to gain?
+        optimizer.iterate()
+        next_decrease = max(final_error - optimizer.error(), 0.0)
+    return GraphSolution(result, iterations, initial_error, final_error, next_decrease)
+
+
+def solve_graph(
+    graph: gtsam.NonlinearFactorGraph,
+    values: gtsam.Values,
+    max_iterations: int,
+    dims: list[tuple[int, int]] | None = None,
+) -> GraphSolution:
+    """Levenberg-Marquardt (:func:`lm_params`) from ``values``; with ``dims`` (:func:`variable_dims`)
+    and at most :data:`dcc_fg.gauss_newton.DENSE_LIMIT` unknowns, also the dense line-search
+    Gauss-Newton (:func:`dcc_fg.gauss_newton.gauss_newton`) from the same start, confirmed by a
+    Levenberg-Marquardt solve from its end; the lower error is kept.
+
+    Why both: on nearly degenerate 3-joint mechanisms Levenberg-Marquardt crawls along a curved, flat
+    valley and stops on its cap short of the minimum, where Gauss-Newton reaches it in ~10 steps;
+    far from a minimum the damped steps are the safer ones. A gtsam failure becomes an
+    :class:`~dcc_fg.util.errors.EstimatorError` of the stage "Levenberg-Marquardt solve" (a failed
+    Gauss-Newton solve only leaves the Levenberg-Marquardt result).
+    """
     with stage(
         "Levenberg-Marquardt solve",
         hint="check the initial kinematics (--gimbal) or start from --init auto; a robust loss (--robust) "
         "helps against outlier corners",
     ):
-        initial_error = graph.error(values)
-        optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, lm_params(max_iterations))
-        result = gtsam.Values(optimizer.optimize())
-        iterations, final_error = optimizer.iterations(), graph.error(result)
-        next_decrease = float("nan")
-        if iterations >= max_iterations:  # stopped on the cap: how much was still to gain?
-            optimizer.iterate()
-            next_decrease = max(final_error - optimizer.error(), 0.0)
-        return GraphSolution(result, iterations, initial_error, final_error, next_decrease)
+        lm = _levenberg_marquardt(graph, values, max_iterations)
+        if dims is None or sum(dim for _, dim in dims) > GN_DENSE_LIMIT:
+            return lm
+        try:
+            gn = gauss_newton(graph, values, dims, GN_MAX_ITERATIONS)
+        except (RuntimeError, ValueError, np.linalg.LinAlgError) as exc:
+            logger.debug("dense Gauss-Newton failed (%s); keeping Levenberg-Marquardt", exc)
+            return lm
+        if not gn.final_error < lm.final_error:
+            return lm
+        confirm = _levenberg_marquardt(graph, gn.values, max_iterations)  # never raises the error
+        iterations = lm.iterations + gn.iterations + confirm.iterations
+        return replace(confirm, initial_error=lm.initial_error, iterations=iterations)
 
 
 @dataclass

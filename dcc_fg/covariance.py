@@ -14,10 +14,10 @@ from dataclasses import dataclass
 
 import gtsam
 import numpy as np
-from gtsam.symbol_shorthand import J, X
+from gtsam.symbol_shorthand import J
 from numpy.typing import NDArray
 
-from dcc_fg.calibration_graph import CalibrationProblem, SolutionArrays, snapshot_measurements
+from dcc_fg.calibration_graph import CalibrationProblem, SolutionArrays, snapshot_measurements, variable_dims
 from dcc_fg.data import CalibrationDataset
 from dcc_fg.util.errors import stage
 from factors import chain
@@ -202,13 +202,7 @@ def dense_covariances(
     problem has more than ``DENSE_LIMIT`` unknowns."""
     K, L, fixed = problem.n_snapshots, problem.n_joints, problem.fixed
     kin_key = problem.kin_key
-    keys: list[tuple[int, int]] = []
-    if kin_key is not None:
-        keys.append((kin_key, int((~fixed).sum())))
-    if problem.estimate_theta:
-        keys += [(J(i), L) for i in range(K)]
-    if problem.formulation == "bundle":
-        keys += [(X(i), 6) for i in range(K)]
+    keys = variable_dims(problem)
     n = sum(d for _, d in keys)
     if n > DENSE_LIMIT or n == 0:
         return None
