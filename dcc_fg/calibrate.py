@@ -118,6 +118,10 @@ class CalibrationOptions:
         compute_covariance: compute Marginals, standard deviations and T_ds covariances.
         nominal: None, or a nominal geometry held by priors (:mod:`dcc_fg.degeneracy`: ``intersecting``,
             ``orthogonal``, ``yaw-roll-pitch``, ...), for users who know their gimbal.
+        gauss_newton: also run the dense line-search Gauss-Newton (:mod:`dcc_fg.gauss_newton`) next
+            to Levenberg-Marquardt in each solve and keep the lower error (off by default: it ends
+            lower where Levenberg-Marquardt crawls on nearly degenerate 3-joint chains, but changed
+            none of the four L = 3 study members that miss the global minimum; see the README).
     """
 
     mode: str = "encoderless"
@@ -128,6 +132,7 @@ class CalibrationOptions:
     max_iterations: int = 500
     compute_covariance: bool = True
     nominal: str | None = None
+    gauss_newton: bool = False
 
     def __post_init__(self) -> None:
         if self.nominal is not None and self.nominal not in NOMINALS:
@@ -525,11 +530,12 @@ def calibrate(
             graph.add(factor)
         for factor in held.factors(problem.kin_key, COVARIANCE_PRIOR_WEAKENING):
             weak_graph.add(factor)
-    solved = solve_graph(graph, values, opt.max_iterations, variable_dims(problem))
+    dims = variable_dims(problem) if opt.gauss_newton else None
+    solved = solve_graph(graph, values, opt.max_iterations, dims)
     polish_note = ""
     if held.count and problem.kin_key is not None:
         try:
-            polished = solve_graph(weak_graph, solved.values, opt.max_iterations, variable_dims(problem))
+            polished = solve_graph(weak_graph, solved.values, opt.max_iterations, dims)
             iterations = solved.iterations + polished.iterations
             solved = replace(polished, initial_error=solved.initial_error, iterations=iterations)
         except EstimatorError as exc:  # keep the solution with the full-strength prior, and say so

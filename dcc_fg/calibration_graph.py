@@ -220,6 +220,10 @@ class GraphSolution:
     """The optimized values and the solver report (errors are GTSAM's 0.5 * sum of squared
     whitened residuals).
 
+    ``iterations`` counts the Levenberg-Marquardt iterations of the kept solve (when the dense
+    Gauss-Newton ended lower, those of the confirming solve from its end; its own steps are
+    ``gauss_newton_iterations``), so ``iterations >= max_iterations`` still means "stopped on the cap".
+
     ``next_decrease``: when the solve stopped on the iteration cap, the error decrease one more
     Levenberg-Marquardt iteration would have made (GTSAM error units; the convergence health check
     compares it with the noise); NaN when it stopped on its tolerances.
@@ -230,6 +234,7 @@ class GraphSolution:
     initial_error: float
     final_error: float
     next_decrease: float = float("nan")
+    gauss_newton_iterations: int = 0
 
 
 def variable_dims(problem: CalibrationProblem) -> list[tuple[int, int]]:
@@ -284,15 +289,14 @@ def solve_graph(
         if dims is None or sum(dim for _, dim in dims) > GN_DENSE_LIMIT:
             return lm
         try:
-            gn = gauss_newton(graph, values, dims, GN_MAX_ITERATIONS)
+            gn = gauss_newton(graph, values, dims, min(GN_MAX_ITERATIONS, max_iterations))
         except (RuntimeError, ValueError, np.linalg.LinAlgError) as exc:
             logger.debug("dense Gauss-Newton failed (%s); keeping Levenberg-Marquardt", exc)
             return lm
         if not gn.final_error < lm.final_error:
             return lm
         confirm = _levenberg_marquardt(graph, gn.values, max_iterations)  # never raises the error
-        iterations = lm.iterations + gn.iterations + confirm.iterations
-        return replace(confirm, initial_error=lm.initial_error, iterations=iterations)
+        return replace(confirm, initial_error=lm.initial_error, gauss_newton_iterations=gn.iterations)
 
 
 @dataclass

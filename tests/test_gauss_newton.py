@@ -6,8 +6,10 @@ import gtsam
 import numpy as np
 import pytest
 
+from dcc_fg.calibrate import CalibrationOptions, calibrate
 from dcc_fg.calibration_graph import solve_graph
 from dcc_fg.gauss_newton import DENSE_LIMIT, gauss_newton, gauss_newton_step
+from dcc_fg.sim.calibration_scene import SimulatedCalibration
 
 KEY = 0
 
@@ -95,17 +97,30 @@ def test_singular_problem_converges_without_raising() -> None:
 
 
 def test_solve_graph_keeps_the_lower_of_both_solvers() -> None:
-    """On a steep valley with a small iteration cap, Levenberg-Marquardt alone stops short; with the
+    """On a steep valley with an iteration cap of 40 (each solver's), Levenberg-Marquardt alone stops short; with the
     variables given, the solve reaches the minimum and never ends above Levenberg-Marquardt."""
     graph = rosenbrock_graph(1.0, 1e4)
     values = start(np.array([-1.5, 2.0]))
-    lm_only = solve_graph(graph, values, 20)
-    both = solve_graph(graph, values, 20, [(KEY, 2)])
+    lm_only = solve_graph(graph, values, 40)
+    both = solve_graph(graph, values, 40, [(KEY, 2)])
     assert both.final_error <= lm_only.final_error
     assert both.final_error < 1e-16 < lm_only.final_error
+    assert lm_only.iterations == 40 and 0 < both.gauss_newton_iterations <= 40
+    assert both.iterations < 40  # the confirming Levenberg-Marquardt solve did not stop on its cap
     np.testing.assert_allclose(both.values.atVector(KEY), [1.0, 1.0], atol=1e-8)
 
 
 def test_refuses_problems_above_its_dense_limit() -> None:
     with pytest.raises(ValueError, match="more than its limit"):
         gauss_newton(gtsam.NonlinearFactorGraph(), gtsam.Values(), [(KEY, DENSE_LIMIT + 1)])
+
+
+def test_calibration_with_gauss_newton_ends_no_higher(demo_sim: SimulatedCalibration) -> None:
+    """The demo calibration with ``gauss_newton=True``: the same minimum as Levenberg-Marquardt alone
+    (error within 1e-9 relative, or lower), and the cap semantics kept (iterations below the cap)."""
+    data = demo_sim.calibration_set
+    lm = calibrate(data, demo_sim.initial, CalibrationOptions(compute_covariance=False))
+    both = calibrate(data, demo_sim.initial, CalibrationOptions(compute_covariance=False, gauss_newton=True))
+    assert both.final_error <= lm.final_error * (1.0 + 1e-9)
+    assert both.iterations < both.options.max_iterations
+    np.testing.assert_allclose(both.calibration.kin, lm.calibration.kin, atol=1e-6)
