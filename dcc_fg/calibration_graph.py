@@ -24,7 +24,6 @@ from gtsam.symbol_shorthand import K as KIN
 from numpy.typing import NDArray
 
 from dcc_fg.data import CalibrationDataset, Snapshot
-from dcc_fg.gauss_newton import DENSE_LIMIT as GN_DENSE_LIMIT
 from dcc_fg.gauss_newton import gauss_newton
 from dcc_fg.util.errors import stage
 from factors import chain
@@ -286,9 +285,9 @@ def solve_graph(
         "helps against outlier corners",
     ):
         lm = _levenberg_marquardt(graph, values, max_iterations)
-        if dims is None or sum(dim for _, dim in dims) > GN_DENSE_LIMIT:
+        if dims is None:
             return lm
-        try:
+        try:  # ValueError also for a problem above the dense limit
             gn = gauss_newton(graph, values, dims, min(GN_MAX_ITERATIONS, max_iterations))
         except (RuntimeError, ValueError, np.linalg.LinAlgError) as exc:
             logger.debug("dense Gauss-Newton failed (%s); keeping Levenberg-Marquardt", exc)

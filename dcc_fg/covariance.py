@@ -19,6 +19,7 @@ from numpy.typing import NDArray
 
 from dcc_fg.calibration_graph import CalibrationProblem, SolutionArrays, snapshot_measurements, variable_dims
 from dcc_fg.data import CalibrationDataset
+from dcc_fg.gauss_newton import ordering_of, scaled_pseudo_inverse
 from dcc_fg.util.errors import stage
 from factors import chain
 from factors.calibration import KinLayout, bundle_residuals, two_way_residuals
@@ -206,19 +207,14 @@ def dense_covariances(
     n = sum(d for _, d in keys)
     if n > DENSE_LIMIT or n == 0:
         return None
-    ordering = gtsam.Ordering()
     offsets = {}
     at = 0
     for key, dim in keys:
-        ordering.push_back(key)
         offsets[key] = (at, dim)
         at += dim
     with stage("marginal covariances", hint=COVARIANCE_HINT):
-        H = graph.linearize(values).hessian(ordering)[0]
-        d = np.sqrt(np.maximum(np.diag(H), 1e-300))
-        w, V = np.linalg.eigh(H / np.outer(d, d))
-        keep = w > DENSE_REL_TOL * w.max()
-        C = ((V[:, keep] / w[keep]) @ V[:, keep].T) / np.outer(d, d) * variance_factor
+        H = graph.linearize(values).hessian(ordering_of(keys))[0]
+        C = scaled_pseudo_inverse(H, DENSE_REL_TOL) * variance_factor
 
     def block(a: int, b: int) -> FloatArray:
         (ia, da), (ib, db) = offsets[a], offsets[b]

@@ -43,25 +43,33 @@ class GaussNewtonResult:
     converged: bool
 
 
-def _ordering(dims: Sequence[tuple[int, int]]) -> gtsam.Ordering:
+def ordering_of(dims: Sequence[tuple[int, int]]) -> gtsam.Ordering:
+    """The elimination ordering of the ``(key, dimension)`` pairs, in their order (the column order
+    of ``GaussianFactorGraph.hessian``)."""
     ordering = gtsam.Ordering()
     for key, _ in dims:
         ordering.push_back(key)
     return ordering
 
 
+def scaled_pseudo_inverse(H: FloatArray, rel_tol: float = REL_TOL) -> FloatArray:
+    """The pseudo-inverse of the information matrix ``H`` taken in Jacobi-scaled coordinates: scaled
+    eigenvalues below ``rel_tol`` of the largest are dropped (directions the data and priors do not
+    determine), so the result stays finite on nearly singular problems."""
+    d = np.sqrt(np.maximum(np.diag(H), 1e-300))
+    w, V = np.linalg.eigh(H / np.outer(d, d))
+    keep = w > rel_tol * w.max()
+    return ((V[:, keep] / w[keep]) @ V[:, keep].T) / np.outer(d, d)
+
+
 def gauss_newton_step(H: FloatArray, eta: FloatArray) -> FloatArray:
     """The minimum-norm solution (in Jacobi-scaled coordinates) of ``H dx = eta``.
 
     ``H`` is the information matrix, ``eta`` the information vector of the linearized graph
-    (``GaussianFactorGraph.hessian``), so ``dx`` is the Gauss-Newton step. Scaled eigenvalues below
-    :data:`REL_TOL` of the largest are dropped (directions the data and priors do not determine).
+    (``GaussianFactorGraph.hessian``), so ``dx`` is the Gauss-Newton step
+    (:func:`scaled_pseudo_inverse` with :data:`REL_TOL`).
     """
-    d = np.sqrt(np.maximum(np.diag(H), 1e-300))
-    w, V = np.linalg.eigh(H / np.outer(d, d))
-    keep = w > REL_TOL * w.max()
-    Vk = V[:, keep]
-    return (Vk @ ((Vk.T @ (eta / d)) / w[keep])) / d
+    return scaled_pseudo_inverse(H) @ eta
 
 
 def _retract(values: gtsam.Values, dims: Sequence[tuple[int, int]], dx: FloatArray) -> gtsam.Values:
@@ -89,7 +97,7 @@ def gauss_newton(
     n = sum(dim for _, dim in dims)
     if n > DENSE_LIMIT:
         raise ValueError(f"dense Gauss-Newton: {n} unknowns, more than its limit of {DENSE_LIMIT}")
-    ordering = _ordering(dims)
+    ordering = ordering_of(dims)
     error = initial_error = graph.error(values)
     converged = False
     iterations = 0
