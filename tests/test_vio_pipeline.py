@@ -26,7 +26,7 @@ from dcc_fg.sim.trajectory import FlightConfig, locked_gimbal
 from dcc_fg.studies.vio_study import slew_recovery_errors
 from dcc_fg.vio.backend import VioOptions
 from dcc_fg.vio.evaluate import evaluate_output, evaluate_trajectory, joint_rmse, load_ground_truth
-from dcc_fg.vio.pipeline import FrameEvent, run_vio_bag
+from dcc_fg.vio.pipeline import FrameEvent, PipelineOptions, run_vio_bag
 
 pytestmark = pytest.mark.slow  # renders two 20 s flights and runs the whole VIO on them (~2-3 min)
 
@@ -115,6 +115,22 @@ def test_observer_sees_every_frame(dcc: dict[str, Any]) -> None:
     assert np.median([len(e.landmarks) for e in kf]) > 20  # type: ignore[arg-type]
     rejected = [e for e in events if e.rejected_ids.size]
     assert all(np.isin(e.rejected_ids, e.frame.dynamic_ids).all() for e in rejected)
+
+
+def test_front_end_process_runs_are_identical(flights: dict[str, FlightBag]) -> None:
+    """Two dcc runs of the same bag with the front end in its own process give the same trajectory and
+    joint angles to the last bit (the child applies the smoother's drops and joint angles at a fixed frame,
+    :mod:`dcc_fg.vio.worker`), whatever the load on the machine."""
+    fb = flights["moving"]
+    cal, imu = load_flight_calibration(fb.calibration)
+    opts = VioOptions(mode="dcc", sigma=1.0 / float(cal.static_camera.intrinsics[0]), keyframe_every=3)  # type: ignore[union-attr]
+    both = [run_vio_bag(fb.bag, cal, imu, opts, pipeline=PipelineOptions(worker="process")) for _ in range(2)]
+    assert [run["frontend_worker"] for _, run in both] == ["process", "process"]
+    runs = [res for res, _ in both]
+    assert runs[0].timestamps_ns.size > 50
+    np.testing.assert_array_equal(runs[0].timestamps_ns, runs[1].timestamps_ns)
+    np.testing.assert_array_equal(runs[0].T_WI, runs[1].T_WI)
+    np.testing.assert_array_equal(runs[0].theta, runs[1].theta)
 
 
 def test_scc_outputs(scc: dict[str, Any]) -> None:
