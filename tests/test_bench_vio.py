@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
+from benchmarks import bench_vio_persistence as persistence
 from benchmarks.bench_vio import main
 
-pytestmark = pytest.mark.slow  # renders and runs short flights through the benchmark (~50 s)
 
-
+@pytest.mark.slow  # renders and runs short flights through the benchmark (~50 s)
 def test_bench_vio_runs(capsys) -> None:  # type: ignore[no-untyped-def]
     # 10 s: a 6 s loop reaches 43 m/s, beyond the divergence bound max_speed
     out = main(["--duration", "10", "--smart", "--fast"])
@@ -29,3 +30,38 @@ def test_bench_vio_runs(capsys) -> None:  # type: ignore[no-untyped-def]
     smart = out["smart"]  # the structureless-landmark run of the same flight
     assert smart["landmarks"] == "smart" and smart["failed_updates"] == 0 and "smart / explicit landmarks" in text
     assert out["dcc_smart_over_explicit_rmse"] > 0 and smart["joint_rmse_rad"] is not None
+
+
+@pytest.mark.slow  # renders two 10 s flights and runs each twice (~1 min)
+def test_bench_vio_persistence_over_flights(capsys) -> None:  # type: ignore[no-untyped-def]
+    """Two short flights, each run with the defaults and without persistent landmarks: one line per flight
+    and the ratios over both (pooled RMS and per-flight range) from the runs themselves."""
+    out = persistence.main(["--seeds", "0-1", "--duration", "10"])
+    text = capsys.readouterr().out
+    assert text.count("seed ") == 2 and "2 flights, no persistent landmarks" in text
+    pairs = out["runs"]
+    assert [(r["persistent_landmarks"], r["lag"]) for pair in pairs for r in pair] == [("all", 1.5), ("none", 2.5)] * 2
+    for pair in pairs:
+        assert all(r["failed_updates"] == 0 and r["parallel"] and r["joint_rmse_rad"] is not None for r in pair)
+    j1 = [pair[1]["joint_rmse_rad"][0] / pair[0]["joint_rmse_rad"][0] for pair in pairs]
+    assert out["joint_1_rmse"]["min"] == min(j1) and out["joint_1_rmse"]["max"] == max(j1)
+
+
+def test_persistence_summary_and_seeds() -> None:
+    """The ratios of the persistence benchmark on made-up runs: pooled RMS ratio, mean, range, medians."""
+    assert persistence.parse_seeds("0-3,7") == [0, 1, 2, 3, 7] and persistence.parse_seeds("5") == [5]
+
+    def run(t: float, j1: float, wall: float) -> dict[str, object]:
+        return {
+            "normalized_translation_rmse_percent": t,
+            "joint_rmse_rad": [j1, 1.0],
+            "wall_s": wall,
+            "cpu_s": wall,
+            "real_time_factor": wall / 60.0,
+        }
+
+    s = persistence.summarize([(run(1.0, 3.0, 30.0), run(2.0, 3.0, 15.0)), (run(1.0, 4.0, 30.0), run(1.0, 4.0, 30.0))])
+    assert s["translation_rmse"]["pooled"] == pytest.approx(np.sqrt(2.5))  # RMS(2, 1) / RMS(1, 1)
+    assert s["translation_rmse"]["mean"] == pytest.approx(1.5) and s["translation_rmse"]["max"] == 2.0
+    assert s["joint_1_rmse"]["pooled"] == pytest.approx(1.0) and s["joint_2_rmse"]["min"] == 1.0
+    assert s["wall_median"] == pytest.approx(0.75) and s["real_time_factor_median"] == [0.5, pytest.approx(0.375)]

@@ -1,0 +1,116 @@
+"""Benchmark: landmark persistence over several flights, defaults against ``--persistent-landmarks none --lag 2.5``.
+
+For every seed in ``--seeds``, a ``dcc`` flight of ``--duration`` seconds (the paper's pattern, the gimbal
+moving freely; body trajectory, IMU noise and textures from the seed) is rendered into a ROS2 bag (not
+timed; ``--keep DIR`` keeps and reuses the bags, ``DIR/seed<N>/moving``) and run twice through
+:func:`dcc_fg.vio.pipeline.run_vio_bag` with the front end in its own process, alternating: with the
+defaults (every landmark persistent, 1.5 s window) and with no persistent landmark and a 2.5 s window
+(:data:`bench_vio.FAST_PERSISTENT`, :data:`bench_vio.FAST_LAG`). The front-end process is deterministic
+(:mod:`dcc_fg.vio.worker`), so each run's accuracy is that of the configuration, not of the machine's load.
+
+Printed: one line per flight (real-time factors, translation and joint RMSE of both, their ratios) and the
+ratios over all flights: pooled (RMS over the flights of the second configuration over RMS of the first),
+mean, min and max per flight, and the median wall-time ratio. One flight decides little: its joint-1 RMSE
+ratio ranged 0.92-1.21 over eight flights.
+
+Usage: ``python benchmarks/bench_vio_persistence.py [--seeds 0-7] [--duration 60] [--keep DIR] [--json OUT]``
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import bench_vio  # noqa: E402
+import bench_vio_cluster as cluster_bench  # noqa: E402
+
+
+def parse_seeds(text: str) -> list[int]:
+    """``0-7`` or ``0,3,5`` (or a mix) as a list of seeds."""
+    seeds: list[int] = []
+    for part in text.split(","):
+        lo, _, hi = part.partition("-")
+        seeds += list(range(int(lo), int(hi) + 1)) if hi else [int(lo)]
+    if not seeds:
+        raise ValueError(f"--seeds '{text}' names no seed")
+    return seeds
+
+
+def _metrics(r: dict[str, Any]) -> dict[str, float]:
+    j1, j2 = r["joint_rmse_rad"]
+    return {"translation_rmse": r["normalized_translation_rmse_percent"], "joint_1_rmse": j1, "joint_2_rmse": j2}
+
+
+def summarize(pairs: list[tuple[dict[str, Any], dict[str, Any]]]) -> dict[str, Any]:
+    """Ratios of the second run of each pair over the first: pooled RMS, mean, min, max per metric;
+    median wall-time and main-process CPU ratios."""
+    out: dict[str, Any] = {}
+    for key in ("translation_rmse", "joint_1_rmse", "joint_2_rmse"):
+        a = np.array([_metrics(p[0])[key] for p in pairs])
+        b = np.array([_metrics(p[1])[key] for p in pairs])
+        ratio = b / a
+        out[key] = {
+            "pooled": float(np.sqrt(np.mean(b**2)) / np.sqrt(np.mean(a**2))),
+            "mean": float(np.mean(ratio)),
+            "min": float(np.min(ratio)),
+            "max": float(np.max(ratio)),
+        }
+    out["wall_median"] = float(np.median([p[1]["wall_s"] / p[0]["wall_s"] for p in pairs]))
+    out["main_cpu_median"] = float(np.median([p[1]["cpu_s"] / p[0]["cpu_s"] for p in pairs]))
+    out["real_time_factor_median"] = [float(np.median([p[k]["real_time_factor"] for p in pairs])) for k in (0, 1)]
+    return out
+
+
+def main(argv: list[str] | None = None) -> dict[str, Any]:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--seeds", default="0-7", help="flight seeds, e.g. 0-7 or 0,2,5 (default 0-7)")
+    p.add_argument("--duration", type=float, default=60.0, help="flight duration, s (default 60)")
+    p.add_argument("--keep", help="write (and reuse) the flights in this folder (default: a temporary one)")
+    p.add_argument("--json", help="also write the runs and ratios to this JSON file")
+    a = p.parse_args(argv)
+    seeds = parse_seeds(a.seeds)
+    cfg = cluster_bench.flight_config(a.duration)
+    pairs = []
+    with tempfile.TemporaryDirectory() as tmp:
+        root = Path(a.keep or tmp)
+        for seed in seeds:
+            folder = root / f"seed{seed}"
+            folder.mkdir(parents=True, exist_ok=True)
+            fb = bench_vio._flight(folder / "moving", cfg, seed, moving=True)
+            ref = bench_vio.run_mode(fb, "dcc", True)
+            fast = bench_vio.run_mode(fb, "dcc", True, persistent=bench_vio.FAST_PERSISTENT, lag=bench_vio.FAST_LAG)
+            pairs.append((ref, fast))
+            m0, m1 = _metrics(ref), _metrics(fast)
+            print(
+                f"seed {seed}: real-time factor {ref['real_time_factor']:.3f} -> {fast['real_time_factor']:.3f}  "
+                f"transl. {m0['translation_rmse']:.4f} -> {m1['translation_rmse']:.4f} %  joint 1 "
+                f"{m0['joint_1_rmse']:.2e} -> {m1['joint_1_rmse']:.2e}  joint 2 {m0['joint_2_rmse']:.2e} -> "
+                f"{m1['joint_2_rmse']:.2e} rad",
+                flush=True,
+            )
+    out = summarize(pairs)
+    print(
+        f"{len(pairs)} flights, no persistent landmarks + {bench_vio.FAST_LAG:g} s / defaults: "
+        + ", ".join(
+            f"{k} pooled {v['pooled']:.3f} (mean {v['mean']:.3f}, {v['min']:.2f}-{v['max']:.2f})"
+            for k, v in out.items()
+            if isinstance(v, dict)
+        )
+        + f"; wall time median {out['wall_median']:.2f}, main-process CPU median {out['main_cpu_median']:.2f}; "
+        f"median real-time factor {out['real_time_factor_median'][0]:.3f} -> {out['real_time_factor_median'][1]:.3f}"
+    )
+    out["runs"] = [list(p) for p in pairs]
+    if a.json:
+        Path(a.json).write_text(json.dumps(out, indent=1))
+    return out
+
+
+if __name__ == "__main__":
+    main()
