@@ -493,8 +493,9 @@ def add_vio_flags(v: argparse.ArgumentParser) -> None:
         help="which landmarks stay in the window while they are tracked: all (default); none: every landmark "
         "leaves with the oldest keyframe that saw it when it was made (its information kept as a prior on the "
         "keyframe states, triangulated afresh if still tracked), so no dense landmark marginal; gimbal: those a "
-        "gimbal camera saw stay. With --lag 2.5, none takes 0.58x the main process's CPU on the 60 s benchmark "
-        "flight with the same translation RMSE but 1.35x the first joint's RMSE (README, VIO throughput)")  # fmt: skip
+        "gimbal camera saw stay. With --lag 2.5, none takes 0.60x the main process's CPU and 0.69x the wall time "
+        "over eight 60 s benchmark flights, with translation and joint RMSE pooled within 3 %% of all's "
+        "(benchmarks/bench_vio_persistence.py; README, VIO throughput)")  # fmt: skip
     opt(v, "--start", "run.start_s", type=float, metavar="S", help="skip the first S seconds of the bag (from its "
         "first IMU sample); the VIO then starts in motion unless the body is at rest there")  # fmt: skip
     opt(v, "--initialization", "smoother.initialization", choices=["auto", "standstill", "motion"], help="how the VIO "
@@ -510,4 +511,6 @@ def add_vio_flags(v: argparse.ArgumentParser) -> None:
         "track (skip the second stage of the two-stage outlier handling)")  # fmt: skip
     opt(v, "--frontend", "run.frontend_worker", choices=["auto", "inline", "process"], help="run the feature tracking "
         "inline, or in a second process on another core so it overlaps the smoother; auto (default) takes the second "
-        "process when two or more cores are usable. benchmarks/bench_vio.py measures both on your machine")  # fmt: skip
+        "process when two or more cores are usable. Both are deterministic (the same result on every run; the "
+        "process applies the smoother's track rejections a few frames later than inline, so the two differ "
+        "slightly). benchmarks/bench_vio.py measures both on your machine")  # fmt: skip
