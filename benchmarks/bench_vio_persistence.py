@@ -49,21 +49,22 @@ def _metrics(r: dict[str, Any]) -> dict[str, float]:
 
 
 def summarize(pairs: list[tuple[dict[str, Any], dict[str, Any]]]) -> dict[str, Any]:
-    """Ratios of the second run of each pair over the first: pooled RMS, mean, min, max per metric;
-    median wall-time and main-process CPU ratios."""
+    """Ratios of the second run of each pair over the first (:func:`bench_vio._ratios` per pair): pooled
+    RMS, mean, min, max per metric; median wall-time and main-process CPU ratios."""
+    per_pair = [bench_vio._ratios(fast, ref) for ref, fast in pairs]
     out: dict[str, Any] = {}
     for key in ("translation_rmse", "joint_1_rmse", "joint_2_rmse"):
-        a = np.array([_metrics(p[0])[key] for p in pairs])
-        b = np.array([_metrics(p[1])[key] for p in pairs])
-        ratio = b / a
+        a = np.array([_metrics(ref)[key] for ref, _ in pairs])
+        b = np.array([_metrics(fast)[key] for _, fast in pairs])
+        ratio = np.array([r[key] for r in per_pair])
         out[key] = {
             "pooled": float(np.sqrt(np.mean(b**2)) / np.sqrt(np.mean(a**2))),
             "mean": float(np.mean(ratio)),
             "min": float(np.min(ratio)),
             "max": float(np.max(ratio)),
         }
-    out["wall_median"] = float(np.median([p[1]["wall_s"] / p[0]["wall_s"] for p in pairs]))
-    out["main_cpu_median"] = float(np.median([p[1]["cpu_s"] / p[0]["cpu_s"] for p in pairs]))
+    out["wall_median"] = float(np.median([r["wall"] for r in per_pair]))
+    out["main_cpu_median"] = float(np.median([r["main_cpu"] for r in per_pair]))
     out["real_time_factor_median"] = [float(np.median([p[k]["real_time_factor"] for p in pairs])) for k in (0, 1)]
     return out
 

@@ -141,7 +141,7 @@ class WorkerSpec:
     t_range: tuple[int, int]
     snapshots: bool
     extra: tuple[RunCamera, ...] = ()
-    lead_frames: int = 2
+    lead_frames: int = 4  # what the pipeline gives the default keyframe_every (2): keyframe_every + 2
 
 
 class _Tracker:
