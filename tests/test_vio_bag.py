@@ -4,20 +4,25 @@
 from __future__ import annotations
 
 import logging
+import subprocess
 from pathlib import Path
 
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+import dcc_fg.sources.vio_bag as vio_bag_module
+import dcc_fg.vio.pipeline as pipeline_module
+import dcc_fg.vio.worker as worker_module
 from dcc_fg.cli import main
-from dcc_fg.data.vio import ImuSamples, load_imu_config
+from dcc_fg.data.vio import ImuConfig, ImuSamples, load_imu_config
 from dcc_fg.io.bag_writer import BagWriter
 from dcc_fg.io.bags import bag_messages, open_bag
 from dcc_fg.model import load_calibration
+from dcc_fg.sim.trajectory import flight_calibration
 from dcc_fg.sources.vio_bag import VioBag, VioFrame
 from dcc_fg.vio.backend import VioOptions
-from dcc_fg.vio.pipeline import check_time_offsets
+from dcc_fg.vio.pipeline import BagTopics, PipelineOptions, check_time_offsets, run_vio_bag
 
 T0 = 1_600_000_000_000_000_000
 MS = 1_000_000
@@ -229,3 +234,45 @@ def test_simulate_flight_cli(tmp_path: Path) -> None:
     assert joints.shape == (101, 3)
     with pytest.raises(SystemExit):
         main(["simulate", "flight", "--out", str(out), "--format", "ros3"])
+
+
+def test_a_first_pass_given_is_not_read_again(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The front end's process gets the parent's first pass of the bag (IMU and image stamps) and builds
+    the same frames from it without reading it again; a first pass of other topics is refused."""
+    path = _write(tmp_path / "b")
+    vb = VioBag(path, "/imu0", "/cam0/image_raw", "/cam1/image_raw")
+
+    def read_again(*args: object) -> None:
+        raise AssertionError("the first pass was read again")
+
+    monkeypatch.setattr(vio_bag_module, "scan_imu_and_image_stamps", read_again)
+    again = VioBag(path, "/imu0", "/cam0/image_raw", "/cam1/image_raw", scan=vb.scan)
+    np.testing.assert_array_equal(again.imu.t_ns, vb.imu.t_ns)
+    np.testing.assert_array_equal(again.imu.acc, vb.imu.acc)
+    ours, theirs = list(vb.frames()), list(again.frames())
+    assert len(ours) == len(theirs) == 21
+    for a, b in zip(ours, theirs, strict=True):
+        assert a.timestamp_ns == b.timestamp_ns and a.dynamic_timestamp_ns == b.dynamic_timestamp_ns
+        assert np.array_equal(a.static, b.static) and np.array_equal(a.dynamic, b.dynamic)  # type: ignore[arg-type]
+    with pytest.raises(
+        ValueError, match=r"/b: the given first pass has image topics /cam0/image_raw, /cam1/image_raw, "
+    ):
+        VioBag(path, "/imu0", "/cam0/image_raw", scan=vb.scan)
+
+
+def test_a_bag_refused_stops_the_front_end_process(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The front end's process starts before the bag is read (its imports overlap the first pass); when
+    the bag is refused, the process is stopped, not left behind."""
+    path = _write(tmp_path / "b")
+    started: list[subprocess.Popen[bytes]] = []
+
+    def spawn() -> subprocess.Popen[bytes]:
+        started.append(worker_module.spawn_frontend_process())
+        return started[-1]
+
+    monkeypatch.setattr(pipeline_module, "spawn_frontend_process", spawn)
+    cal = flight_calibration()
+    topics = BagTopics(imu="/imu_missing")
+    with pytest.raises(ValueError, match="topic /imu_missing not found"):
+        run_vio_bag(path, cal, ImuConfig(), VioOptions(mode="dcc"), topics, PipelineOptions(worker="process"))
+    assert len(started) == 1 and started[0].poll() is not None

@@ -63,7 +63,7 @@ from dcc_fg.data.vio import (
     imu_out_of_range,
 )
 from dcc_fg.detection import to_gray8
-from dcc_fg.io.bags import scan_imu_and_image_stamps, stream_image_groups
+from dcc_fg.io.bags import ImuImageStamps, scan_imu_and_image_stamps, stream_image_groups
 from dcc_fg.io.pairing import median_period_ms, pair_timestamps, stamp_jitter_s
 
 log = logging.getLogger(__name__)
@@ -230,6 +230,9 @@ class VioBag:
             ``gyro_range``); samples beyond are dropped. None: no range check (only non-finite values).
         extra_topics: image topics of further cameras (run index 2, 3, ...), paired with the static
             images (module docstring); their pairing numbers are in :attr:`extra_pairing_statistics`.
+        scan: the bag's first pass (:func:`~dcc_fg.io.bags.scan_imu_and_image_stamps` of these topics)
+            when it has been made already, e.g. by the process that starts the front end's (:attr:`scan`
+            holds it): not read again. None: read here.
     """
 
     def __init__(
@@ -246,6 +249,7 @@ class VioBag:
         acc_range: float | None = None,
         gyro_range: float | None = None,
         extra_topics: Sequence[str] = (),
+        scan: ImuImageStamps | None = None,
     ) -> None:
         self.path = Path(path)
         self.imu_topic, self.static_topic, self.dynamic_topic = imu_topic, static_topic, dynamic_topic
@@ -257,7 +261,14 @@ class VioBag:
                 f"{self.path}: image topic {', '.join(repeated)} is given for more than one camera "
                 f"(static {static_topic}, gimbal {dynamic_topic}, further cameras {', '.join(self.extra_topics)})"
             )
-        scan = scan_imu_and_image_stamps(self.path, imu_topic, image_topics)
+        if scan is None:
+            scan = scan_imu_and_image_stamps(self.path, imu_topic, image_topics)
+        elif set(scan.image_stamps) != set(image_topics):
+            raise ValueError(
+                f"{self.path}: the given first pass has image topics {', '.join(sorted(scan.image_stamps))}, "
+                f"not {', '.join(sorted(image_topics))}"
+            )
+        self.scan = scan
         where = f"{self.path}: topic {imu_topic}"
         self.imu, self.imu_check = validate_imu(
             scan.imu_t_ns,

@@ -38,13 +38,22 @@ from numpy.typing import NDArray
 
 from dcc_fg.data.cameras import RunCamera, ignored_cameras, run_cameras
 from dcc_fg.data.vio import ImuConfig, ImuSamples, TrackFrame
+from dcc_fg.io.bags import ImuImageStamps
 from dcc_fg.model import GimbalCalibration
 from dcc_fg.sources.vio_bag import VioBag
+from dcc_fg.util.allocator import reuse_large_buffers
 from dcc_fg.vio.backend import NS, InitialState, VioOptions, VioResult, VioSmoother, timing_stats
 from dcc_fg.vio.backend.motion_init import StartSelector, start_sigmas
 from dcc_fg.vio.frontend import FrontendConfig, GimbalHint, gimbal_outliers
 from dcc_fg.vio.joint_init import JointFit, fit_joint_angles
-from dcc_fg.vio.worker import FrontendWorker, Tracked, WorkerSpec, resolve_mode
+from dcc_fg.vio.worker import (
+    FrontendWorker,
+    Tracked,
+    WorkerSpec,
+    resolve_mode,
+    spawn_frontend_process,
+    stop_process,
+)
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -385,6 +394,7 @@ def frontend_spec(
     theta0: FloatArray,
     t_range: tuple[int, int],
     cameras: tuple[RunCamera, ...] = (),
+    scan: ImuImageStamps | None = None,
 ) -> WorkerSpec:
     """What the front-end worker needs: bag, topics (no gimbal topic in ``mono``), calibration,
     starting joint angles (rad), the time range (ns) of frames to track and the further cameras."""
@@ -403,6 +413,7 @@ def frontend_spec(
         snapshots=options.mode == "dcc" and pipeline.reject_dynamic,
         extra=cameras,
         lead_frames=options.keyframe_every + 2,
+        scan=scan,
     )
 
 
@@ -460,6 +471,47 @@ def run_statistics(
     }
 
 
+def _open_run(
+    bag: str | Path,
+    calibration: GimbalCalibration,
+    imu_config: ImuConfig,
+    options: VioOptions,
+    topics: BagTopics,
+    pipeline: PipelineOptions,
+    initial: InitialState | None,
+    cameras: tuple[RunCamera, ...],
+) -> tuple[VioBag, VioOptions, WorkerSpec, FloatArray | None]:
+    """Read the bag's first pass and check it: the bag, the options with the stamp jitter filled in,
+    the front end's spec (with that first pass, so its process does not read it again) and the
+    joint-angle guess (rad, or None)."""
+    mono = options.mode == "mono"
+    vb = VioBag(
+        bag,
+        topics.imu,
+        topics.static,
+        None if mono else topics.dynamic,
+        extra_topics=tuple(c.topic for c in cameras),
+        tolerance_ns=pipeline.tolerance_ns,
+        time_offsets_ns=time_offsets_ns(options),
+        acc_range=imu_config.acc_range,
+        gyro_range=imu_config.gyro_range,
+    )
+    check_time_offsets(vb, options)
+    check_further_sync(vb, cameras, pipeline.max_further_gap_ms)
+    if options.stamp_jitter is None:
+        options = dataclasses.replace(options, stamp_jitter=vb.stamp_jitter())
+    t_first, t_last = int(vb.imu.t_ns[0]), int(vb.imu.t_ns[-1])
+    t_min = t_first + int(pipeline.start_s * NS) if initial is None else max(t_first, int(initial.t_ns))
+    if t_min >= t_last:
+        raise ValueError(
+            f"{bag}: start {pipeline.start_s:g} s is after the end of the IMU data ({(t_last - t_first) / NS:.1f} s)"
+        )
+    guess = joint_angle_guess(options, initial)
+    theta0 = guess if guess is not None else np.zeros(calibration.n_joints)
+    spec = frontend_spec(bag, calibration, options, topics, pipeline, theta0, (t_min, t_last), cameras, vb.scan)
+    return vb, options, spec, guess
+
+
 def run_vio_bag(
     bag: str | Path,
     calibration: GimbalCalibration,
@@ -500,36 +552,21 @@ def run_vio_bag(
     if left_out:
         how = log.info if pipeline.cameras is not None else log.warning  # asked for, or the mode's limit
         how("%s mode leaves out camera(s) %s of the cluster", options.mode, ", ".join(left_out))
-    mono = options.mode == "mono"
+    mode = resolve_mode(pipeline.worker)
+    reuse_large_buffers()  # per-frame OpenCV scratch buffers stay on the heap (dcc_fg.util.allocator)
     t_wall = time.perf_counter()
-    vb = VioBag(
-        bag,
-        topics.imu,
-        topics.static,
-        None if mono else topics.dynamic,
-        extra_topics=tuple(c.topic for c in cameras),
-        tolerance_ns=pipeline.tolerance_ns,
-        time_offsets_ns=time_offsets_ns(options),
-        acc_range=imu_config.acc_range,
-        gyro_range=imu_config.gyro_range,
-    )
-    check_time_offsets(vb, options)
-    check_further_sync(vb, cameras, pipeline.max_further_gap_ms)
-    if options.stamp_jitter is None:
-        options = dataclasses.replace(options, stamp_jitter=vb.stamp_jitter())
-    t_first, t_last = int(vb.imu.t_ns[0]), int(vb.imu.t_ns[-1])
-    t_min = t_first + int(pipeline.start_s * NS) if initial is None else max(t_first, int(initial.t_ns))
-    if t_min >= t_last:
-        raise ValueError(
-            f"{bag}: start {pipeline.start_s:g} s is after the end of the IMU data ({(t_last - t_first) / NS:.1f} s)"
-        )
-    guess = joint_angle_guess(options, initial)
-    theta0 = guess if guess is not None else np.zeros(calibration.n_joints)
-    spec = frontend_spec(bag, calibration, options, topics, pipeline, theta0, (t_min, t_last), cameras)
-    worker = FrontendWorker(spec, resolve_mode(pipeline.worker))
-    driver = SmootherDriver(vb.imu, imu_config, calibration, options, pipeline, initial, guess, worker, cameras)
+    # the front end's process starts now and imports its modules while this one reads the bag
+    early = spawn_frontend_process() if mode == "process" else None
+    try:
+        vb, options, spec, guess = _open_run(bag, calibration, imu_config, options, topics, pipeline, initial, cameras)
+    except BaseException:
+        if early is not None:
+            stop_process(early)
+        raise
+    worker = FrontendWorker(spec, mode, process=early)
     n_total = len(vb)
     try:
+        driver = SmootherDriver(vb.imu, imu_config, calibration, options, pipeline, initial, guess, worker, cameras)
         driver.observer = observer
         for item in worker:
             driver.feed(item)
