@@ -1,12 +1,11 @@
-"""Benchmark: landmark persistence over several flights, the former defaults (all, 1.5 s) against the defaults.
+"""Benchmark: landmark persistence over several flights, defaults against ``--persistent-landmarks none --lag 2.5``.
 
 For every seed in ``--seeds``, a ``dcc`` flight of ``--duration`` seconds (the paper's pattern, the gimbal
 moving freely; body trajectory, IMU noise and textures from the seed) is rendered into a ROS2 bag (not
 timed; ``--keep DIR`` keeps and reuses the bags, ``DIR/seed<N>/moving``) and run twice through
 :func:`dcc_fg.vio.pipeline.run_vio_bag` with the front end in its own process, alternating: with the
-former defaults (every landmark persistent, 1.5 s window: :data:`bench_vio.FORMER_PERSISTENT`,
-:data:`bench_vio.FORMER_LAG`, ``--persistent-landmarks all --lag 1.5``) and with the defaults (no
-persistent landmark, 2.5 s window). The front-end process is deterministic
+defaults (every landmark persistent, 1.5 s window) and with no persistent landmark and a 2.5 s window
+(:data:`bench_vio.FAST_PERSISTENT`, :data:`bench_vio.FAST_LAG`). The front-end process is deterministic
 (:mod:`dcc_fg.vio.worker`), so each run's accuracy is that of the configuration, not of the machine's load.
 
 Printed: one line per flight (real-time factors, translation and joint RMSE of both, their ratios) and the
@@ -86,8 +85,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             folder = root / f"seed{seed}"
             folder.mkdir(parents=True, exist_ok=True)
             fb = bench_vio._flight(folder / "moving", cfg, seed, moving=True)
-            ref = bench_vio.run_mode(fb, "dcc", True, persistent=bench_vio.FORMER_PERSISTENT, lag=bench_vio.FORMER_LAG)
-            fast = bench_vio.run_mode(fb, "dcc", True)
+            ref = bench_vio.run_mode(fb, "dcc", True)
+            fast = bench_vio.run_mode(fb, "dcc", True, persistent=bench_vio.FAST_PERSISTENT, lag=bench_vio.FAST_LAG)
             pairs.append((ref, fast))
             m0, m1 = _metrics(ref), _metrics(fast)
             print(
@@ -99,8 +98,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             )
     out = summarize(pairs)
     print(
-        f"{len(pairs)} flights, defaults (no persistent landmarks, 2.5 s) / former defaults "
-        f"({bench_vio.FORMER_PERSISTENT}, {bench_vio.FORMER_LAG:g} s): "
+        f"{len(pairs)} flights, no persistent landmarks + {bench_vio.FAST_LAG:g} s / defaults: "
         + ", ".join(
             f"{k} pooled {v['pooled']:.3f} (mean {v['mean']:.3f}, {v['min']:.2f}-{v['max']:.2f})"
             for k, v in out.items()

@@ -240,9 +240,8 @@ def test_validate_accepts_a_config(small: RenderedCalibration, tmp_path: Path) -
 
 def test_vio_defaults_match_the_former_command_line_defaults() -> None:
     c = VioConfig()
-    # the window 1.5 -> 2.5 s and persistent landmarks all -> none (README, VIO throughput)
-    assert (c.smoother.mode, c.smoother.keyframe_every, c.smoother.lag) == ("dcc", 3, 2.5)
-    assert c.smoother.persistent_landmarks == "none"
+    assert (c.smoother.mode, c.smoother.keyframe_every, c.smoother.lag) == ("dcc", 3, 1.5)
+    assert c.smoother.persistent_landmarks == "all"
     assert (c.run.pixel_sigma, c.run.frontend_worker) == (1.0, "auto")
     # pairing by exposure time with an automatic tolerance (was 5 ms), time offsets estimated from 0 / the calibration
     assert c.run.sync_tolerance_ms is None

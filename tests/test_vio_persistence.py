@@ -22,8 +22,7 @@ CFG = StudyConfig(duration=15.0, density=0.5, pixel_sigma=0.5, seed=3)
 
 @pytest.fixture(scope="module")
 def runs() -> dict[str, dict[str, Any]]:
-    # at the former 1.5 s window (at 2.5 s few gimbal tracks of this 15 s flight outlive their landmark)
-    return {p: run_mode("dcc", CFG, {"persistent_landmarks": p, "lag": 1.5}) for p in ("all", "gimbal", "none")}
+    return {p: run_mode("dcc", CFG, {"persistent_landmarks": p}) for p in ("all", "gimbal", "none")}
 
 
 def test_non_persistent_landmarks_stay_accurate(runs: dict[str, dict[str, Any]]) -> None:

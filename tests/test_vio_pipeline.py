@@ -118,23 +118,19 @@ def test_observer_sees_every_frame(dcc: dict[str, Any]) -> None:
 
 
 def test_front_end_process_runs_are_identical(flights: dict[str, FlightBag]) -> None:
-    """Two dcc runs of the same bag with the front end in its own process give the same tracks, so the
-    same trajectory and joint angles: to the last bit with every landmark persistent, and within 1e-8
-    with the defaults, where landmarks leave the window in groups and GTSAM's marginalization sums in an
-    order that varies between processes (inline runs differ by ~1e-10 too). The child applies the
-    smoother's drops and joint angles at a fixed frame (:mod:`dcc_fg.vio.worker`), whatever the load."""
+    """Two dcc runs of the same bag with the front end in its own process give the same trajectory and
+    joint angles to the last bit (the child applies the smoother's drops and joint angles at a fixed frame,
+    :mod:`dcc_fg.vio.worker`), whatever the load on the machine."""
     fb = flights["moving"]
     cal, imu = load_flight_calibration(fb.calibration)
-    sigma = 1.0 / float(cal.static_camera.intrinsics[0])  # type: ignore[union-attr]
-    for persistent, tol in (("all", 0.0), ("none", 1e-8)):
-        opts = VioOptions(mode="dcc", sigma=sigma, keyframe_every=3, persistent_landmarks=persistent)
-        both = [run_vio_bag(fb.bag, cal, imu, opts, pipeline=PipelineOptions(worker="process")) for _ in range(2)]
-        assert [run["frontend_worker"] for _, run in both] == ["process", "process"]
-        runs = [res for res, _ in both]
-        assert runs[0].timestamps_ns.size > 50
-        np.testing.assert_array_equal(runs[0].timestamps_ns, runs[1].timestamps_ns)
-        np.testing.assert_allclose(runs[0].T_WI, runs[1].T_WI, rtol=0, atol=tol)
-        np.testing.assert_allclose(runs[0].theta, runs[1].theta, rtol=0, atol=tol)
+    opts = VioOptions(mode="dcc", sigma=1.0 / float(cal.static_camera.intrinsics[0]), keyframe_every=3)  # type: ignore[union-attr]
+    both = [run_vio_bag(fb.bag, cal, imu, opts, pipeline=PipelineOptions(worker="process")) for _ in range(2)]
+    assert [run["frontend_worker"] for _, run in both] == ["process", "process"]
+    runs = [res for res, _ in both]
+    assert runs[0].timestamps_ns.size > 50
+    np.testing.assert_array_equal(runs[0].timestamps_ns, runs[1].timestamps_ns)
+    np.testing.assert_array_equal(runs[0].T_WI, runs[1].T_WI)
+    np.testing.assert_array_equal(runs[0].theta, runs[1].theta)
 
 
 def test_scc_outputs(scc: dict[str, Any]) -> None:

@@ -475,7 +475,7 @@ def add_vio_flags(v: argparse.ArgumentParser) -> None:
         help="scc: the locked joint angles, e.g. '1.57,0' (rad)")  # fmt: skip
     opt(v, "--pixel-sigma", "run.pixel_sigma", type=float, help="feature noise, pixels (1 sigma; default 1)")
     opt(v, "--keyframe-every", "smoother.keyframe_every", type=int, help="every n-th frame is a keyframe (default 3)")
-    opt(v, "--lag", "smoother.lag", type=float, help="smoother window, seconds (default 2.5)")
+    opt(v, "--lag", "smoother.lag", type=float, help="smoother window, seconds (default 1.5)")
     opt(v, "--sync-tolerance", "run.sync_tolerance_ms", type=float, metavar="MS",
         help="static <-> gimbal image pairing tolerance by exposure time (stamp + offset), ms (default: half the "
         "slower camera's frame period: each static image takes its nearest gimbal image)")  # fmt: skip
@@ -490,12 +490,12 @@ def add_vio_flags(v: argparse.ArgumentParser) -> None:
         "factor per landmark (0.69x the main process's CPU on the 60 s benchmark flight with --lag 2.5, same "
         "translation RMSE, 1.2-1.4x the joint RMSE); needs estimated time offsets and no further cameras")  # fmt: skip
     opt(v, "--persistent-landmarks", "smoother.persistent_landmarks", choices=["all", "gimbal", "none"],
-        help="which landmarks stay in the window while they are tracked: none (default): every landmark leaves "
-        "with the oldest keyframe that saw it when it was made (its information kept as a prior on the keyframe "
-        "states, triangulated afresh if still tracked), so no dense landmark marginal; all: every tracked landmark "
-        "stays (the former default, with --lag 1.5: 1.00x the translation and 1.02x / 0.97x the joint RMSE of none "
-        "pooled over eight 60 s benchmark flights, at 1.45x the wall time; benchmarks/bench_vio_persistence.py, "
-        "README, VIO throughput); gimbal: those a gimbal camera saw stay")  # fmt: skip
+        help="which landmarks stay in the window while they are tracked: all (default); none: every landmark "
+        "leaves with the oldest keyframe that saw it when it was made (its information kept as a prior on the "
+        "keyframe states, triangulated afresh if still tracked), so no dense landmark marginal; gimbal: those a "
+        "gimbal camera saw stay. With --lag 2.5, none takes 0.60x the main process's CPU and 0.69x the wall time "
+        "over eight 60 s benchmark flights, with translation and joint RMSE pooled within 3 %% of all's "
+        "(benchmarks/bench_vio_persistence.py; README, VIO throughput)")  # fmt: skip
     opt(v, "--start", "run.start_s", type=float, metavar="S", help="skip the first S seconds of the bag (from its "
         "first IMU sample); the VIO then starts in motion unless the body is at rest there")  # fmt: skip
     opt(v, "--initialization", "smoother.initialization", choices=["auto", "standstill", "motion"], help="how the VIO "

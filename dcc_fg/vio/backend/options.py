@@ -81,13 +81,12 @@ class VioOptions:
     persistent, 1.5 s lag), but 1.4x the first joint's
     RMSE (with a 1.5 s lag: 0.56x the CPU, 1.2-1.45x the translation RMSE).
     ``persistent_landmarks`` (``explicit`` landmarks): which landmarks stay in the window while they are
-    tracked: ``none`` (the default); ``all``; ``gimbal``, those a camera on a gimbal saw. The others leave with
-    the oldest keyframe that saw them when they were made (:meth:`~.landmarks.LandmarkMap.stamp_ns`): their
+    tracked: ``all``; ``gimbal``, those a camera on a gimbal saw; ``none``. The others leave with the oldest
+    keyframe that saw them when they were made (:meth:`~.landmarks.LandmarkMap.stamp_ns`): their
     observations become a prior on the keyframe states and a track that goes on is triangulated afresh.
     A persistent landmark the leaving keyframe saw stays in that keyframe's marginal, so every one of them
-    is tied into one dense prior: the main cost of the smoother. Without it a longer window is affordable:
-    the defaults (``none``, 2.5 s ``lag``) replaced ``all`` with 1.5 s, whose accuracy they match over
-    eight rendered 60 s flights at 0.69x the wall time (the README's VIO throughput section).
+    is tied into one dense prior: the main cost of the smoother (the README's VIO throughput section has
+    the measured speed and accuracy of each choice).
     ``smart`` needs every observation on an identity-mount camera pose: the incremental smoother,
     estimated time offsets that stay estimated (``time_offset_freeze_sigma`` None),
     ``gimbal_factor='camera_pose'`` and no further cameras.
@@ -95,7 +94,7 @@ class VioOptions:
 
     mode: str = "dcc"
     keyframe_every: int = 2
-    lag: float = 2.5
+    lag: float = 1.5
     sigma: float = 1.0 / 460.0
     robust_k: float = 2.0
     theta_random_walk: float = 1.0
@@ -108,7 +107,7 @@ class VioOptions:
     triangulation_gate: float = 4.0
     observation_gate: float = 30.0
     max_new_landmarks: int = 150
-    persistent_landmarks: str = "none"
+    persistent_landmarks: str = "all"
     standstill_window: float = 0.5
     prior_position_sigma: float = 1e-3
     prior_rotation_sigma: float = 1e-3
