@@ -22,7 +22,13 @@ from dcc_fg.model import load_calibration
 from dcc_fg.sim.trajectory import flight_calibration
 from dcc_fg.sources.vio_bag import VioBag, VioFrame
 from dcc_fg.vio.backend import VioOptions
-from dcc_fg.vio.pipeline import BagTopics, PipelineOptions, check_time_offsets, run_vio_bag
+from dcc_fg.vio.pipeline import (
+    BagTopics,
+    PipelineOptions,
+    check_time_offsets,
+    run_vio_bag,
+    warn_persistence_on_unsynchronized,
+)
 
 T0 = 1_600_000_000_000_000_000
 MS = 1_000_000
@@ -276,3 +282,20 @@ def test_a_bag_refused_stops_the_front_end_process(tmp_path: Path, monkeypatch: 
     with pytest.raises(ValueError, match="topic /imu_missing not found"):
         run_vio_bag(path, cal, ImuConfig(), VioOptions(mode="dcc"), topics, PipelineOptions(worker="process"))
     assert len(started) == 1 and started[0].poll() is not None
+
+
+def test_non_persistent_landmarks_on_unsynchronized_cameras_warn(tmp_path: Path, caplog) -> None:  # noqa: ANN001
+    """``persistent_landmarks`` other than ``all`` with a gimbal camera on its own clock is warned about (it
+    measured 1.56x the synchronized flight's translation RMSE); synchronized pairs or ``all`` are not."""
+    synced = VioBag(_write(tmp_path / "s"), "/imu0", "/cam0/image_raw", "/cam1/image_raw")
+    gimbal_t = T0 + 7 * MS + np.arange(30) * 33_333_333  # 30 Hz on its own phase
+    unsynced = VioBag(_write(tmp_path / "u", dynamic_t=gimbal_t), "/imu0", "/cam0/image_raw", "/cam1/image_raw")
+    none = VioOptions(persistent_landmarks="none", lag=2.5)
+    caplog.clear()  # the bag's own pairing warning
+    with caplog.at_level(logging.WARNING):
+        assert not warn_persistence_on_unsynchronized(synced, none)
+        assert not warn_persistence_on_unsynchronized(unsynced, VioOptions())
+        assert not caplog.records
+        assert warn_persistence_on_unsynchronized(unsynced, none)
+    assert "gimbal camera is not synchronized" in caplog.text and "--persistent-landmarks all" in caplog.text
+    assert "/u" in caplog.text
