@@ -286,7 +286,7 @@ def test_a_bag_refused_stops_the_front_end_process(tmp_path: Path, monkeypatch: 
 
 def test_non_persistent_landmarks_on_unsynchronized_cameras_warn(tmp_path: Path, caplog) -> None:  # noqa: ANN001
     """``persistent_landmarks`` other than ``all`` with a gimbal camera on its own clock is warned about (it
-    measured 1.56x the synchronized flight's translation RMSE); synchronized pairs or ``all`` are not."""
+    measured 1.19x the translation RMSE of ``all`` there); synchronized pairs or ``all`` are not."""
     synced = VioBag(_write(tmp_path / "s"), "/imu0", "/cam0/image_raw", "/cam1/image_raw")
     gimbal_t = T0 + 7 * MS + np.arange(30) * 33_333_333  # 30 Hz on its own phase
     unsynced = VioBag(_write(tmp_path / "u", dynamic_t=gimbal_t), "/imu0", "/cam0/image_raw", "/cam1/image_raw")

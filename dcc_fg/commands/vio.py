@@ -496,8 +496,7 @@ def add_vio_flags(v: argparse.ArgumentParser) -> None:
         "gimbal camera saw stay. With --lag 2.5, none takes 0.60x the main process's CPU and 0.69x the wall time "
         "over eight 60 s benchmark flights, with translation and joint RMSE pooled within 3.5 %% of all's "
         "(benchmarks/bench_vio_persistence.py; README, VIO throughput), but on the unsynchronized benchmark flight "
-        "(gimbal camera at 30 Hz on its own clock) 1.56x the synchronized flight's translation RMSE against 1.03x "
-        "with all: a warning says so")  # fmt: skip
+        "(gimbal camera at 30 Hz on its own clock) 1.19x the translation RMSE of all: a warning says so")  # fmt: skip
     opt(v, "--start", "run.start_s", type=float, metavar="S", help="skip the first S seconds of the bag (from its "
         "first IMU sample); the VIO then starts in motion unless the body is at rest there")  # fmt: skip
     opt(v, "--initialization", "smoother.initialization", choices=["auto", "standstill", "motion"], help="how the VIO "
