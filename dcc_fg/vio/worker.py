@@ -6,11 +6,11 @@ length-prefixed pickles over its stdin/stdout), started before the parent reads 
 imports (about 0.6 s) overlap the parent's first pass; the parent then sends that first pass (IMU and
 image stamps) with the :class:`WorkerSpec`, so the child does not read it again (on the 60 s flight
 its first frame is tracked 0.76-1.10 s after the start instead of 2.06-2.34 s, three runs alternated
-with the code before). The child opens
-the bag itself (:class:`~dcc_fg.sources.vio_bag.VioBag`), decodes and tracks every frame pair
-(:class:`~dcc_fg.vio.frontend.Frontend`) and sends the tracks to the parent; the parent sends back
-the joint angles of each new keyframe (the front end's T_ds(theta) guess for the static <-> gimbal
-matching) and the ids of gimbal tracks to drop (the second stage of the gimbal outlier handling).
+with the code before). The child opens the bag itself (:class:`~dcc_fg.sources.vio_bag.VioBag`),
+decodes and tracks every frame pair (:class:`~dcc_fg.vio.frontend.Frontend`) and sends the tracks
+to the parent; the parent sends back the joint angles of each new keyframe (the front end's
+T_ds(theta) guess for the static <-> gimbal matching) and the ids of gimbal tracks to drop (the second
+stage of the gimbal outlier handling).
 
 Determinism. The child tracks frame ``n`` only after the parent has finished frame ``n - lead``
 (:attr:`WorkerSpec.lead_frames`; the parent says so with a ``("done", n)`` message when it asks for the
