@@ -240,8 +240,11 @@ def test_validate_accepts_a_config(small: RenderedCalibration, tmp_path: Path) -
 
 def test_vio_defaults_match_the_former_command_line_defaults() -> None:
     c = VioConfig()
-    assert (c.smoother.mode, c.smoother.keyframe_every, c.smoother.lag) == ("dcc", 3, 1.5)
-    assert c.smoother.persistent_landmarks == "all"
+    assert (c.smoother.mode, c.smoother.keyframe_every) == ("dcc", 3)
+    # persistence and window chosen per run from the cameras' timing (VioOptions.resolved); was all, 1.5 s
+    assert (c.smoother.persistent_landmarks, c.smoother.lag) == ("auto", None)
+    assert (c.smoother.resolved(False).persistent_landmarks, c.smoother.resolved(False).lag) == ("all", 1.5)
+    assert (c.smoother.resolved(True).persistent_landmarks, c.smoother.resolved(True).lag) == ("none", 2.5)
     assert (c.run.pixel_sigma, c.run.frontend_worker) == (1.0, "auto")
     # pairing by exposure time with an automatic tolerance (was 5 ms), time offsets estimated from 0 / the calibration
     assert c.run.sync_tolerance_ms is None

@@ -15,6 +15,7 @@ import dcc_fg.sources.vio_bag as vio_bag_module
 import dcc_fg.vio.pipeline as pipeline_module
 import dcc_fg.vio.worker as worker_module
 from dcc_fg.cli import main
+from dcc_fg.data.cameras import RunCamera
 from dcc_fg.data.vio import ImuConfig, ImuSamples, load_imu_config
 from dcc_fg.io.bag_writer import BagWriter
 from dcc_fg.io.bags import bag_messages, open_bag
@@ -25,6 +26,7 @@ from dcc_fg.vio.backend import VioOptions
 from dcc_fg.vio.pipeline import (
     BagTopics,
     PipelineOptions,
+    bag_synchronized,
     check_time_offsets,
     run_vio_bag,
     warn_persistence_on_unsynchronized,
@@ -285,17 +287,29 @@ def test_a_bag_refused_stops_the_front_end_process(tmp_path: Path, monkeypatch: 
 
 
 def test_non_persistent_landmarks_on_unsynchronized_cameras_warn(tmp_path: Path, caplog) -> None:  # noqa: ANN001
-    """``persistent_landmarks`` other than ``all`` with a gimbal camera on its own clock is warned about (it
-    measured 1.19x the translation RMSE of ``all`` there); synchronized pairs or ``all`` are not."""
+    """``persistent_landmarks`` given as ``none`` or ``gimbal`` with a gimbal camera on its own clock is warned
+    about (``none`` measured 1.19x the translation RMSE of ``all`` there); synchronized pairs, ``all`` or
+    ``auto`` are not, and ``auto`` resolves to ``none`` with 2.5 s on synchronized cameras, ``all`` with
+    1.5 s on unsynchronized ones or with further cameras."""
     synced = VioBag(_write(tmp_path / "s"), "/imu0", "/cam0/image_raw", "/cam1/image_raw")
     gimbal_t = T0 + 7 * MS + np.arange(30) * 33_333_333  # 30 Hz on its own phase
     unsynced = VioBag(_write(tmp_path / "u", dynamic_t=gimbal_t), "/imu0", "/cam0/image_raw", "/cam1/image_raw")
+    assert bag_synchronized(synced, "dcc", ()) and bag_synchronized(unsynced, "mono", ())
+    assert not bag_synchronized(unsynced, "dcc", ()) and not bag_synchronized(unsynced, "scc", ())
+    further = (RunCamera(2, "cam2", None, "/cam2/image_raw", np.eye(4)),)  # type: ignore[arg-type]
+    assert not bag_synchronized(synced, "dcc", further)
+    auto = VioOptions()
+    assert (auto.resolved(True).persistent_landmarks, auto.resolved(True).lag) == ("none", 2.5)
+    assert (auto.resolved(False).persistent_landmarks, auto.resolved(False).lag) == ("all", 1.5)
+    assert VioOptions(lag=2.0).resolved(True).lag == 2.0  # a given window is kept
+    assert VioOptions(landmarks="smart").resolved(True).persistent_landmarks == "all"
     none = VioOptions(persistent_landmarks="none", lag=2.5)
     caplog.clear()  # the bag's own pairing warning
     with caplog.at_level(logging.WARNING):
-        assert not warn_persistence_on_unsynchronized(synced, none)
-        assert not warn_persistence_on_unsynchronized(unsynced, VioOptions())
+        assert not warn_persistence_on_unsynchronized(synced, none, True)
+        assert not warn_persistence_on_unsynchronized(unsynced, auto, False)
+        assert not warn_persistence_on_unsynchronized(unsynced, VioOptions(persistent_landmarks="all"), False)
         assert not caplog.records
-        assert warn_persistence_on_unsynchronized(unsynced, none)
+        assert warn_persistence_on_unsynchronized(unsynced, none, False)
     assert "gimbal camera is not synchronized" in caplog.text and "--persistent-landmarks all" in caplog.text
     assert "/u" in caplog.text

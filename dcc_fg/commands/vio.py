@@ -475,7 +475,8 @@ def add_vio_flags(v: argparse.ArgumentParser) -> None:
         help="scc: the locked joint angles, e.g. '1.57,0' (rad)")  # fmt: skip
     opt(v, "--pixel-sigma", "run.pixel_sigma", type=float, help="feature noise, pixels (1 sigma; default 1)")
     opt(v, "--keyframe-every", "smoother.keyframe_every", type=int, help="every n-th frame is a keyframe (default 3)")
-    opt(v, "--lag", "smoother.lag", type=float, help="smoother window, seconds (default 1.5)")
+    opt(v, "--lag", "smoother.lag", type=float, help="smoother window, seconds (default: 2.5 with no persistent "
+        "landmarks, 1.5 otherwise; see --persistent-landmarks)")  # fmt: skip
     opt(v, "--sync-tolerance", "run.sync_tolerance_ms", type=float, metavar="MS",
         help="static <-> gimbal image pairing tolerance by exposure time (stamp + offset), ms (default: half the "
         "slower camera's frame period: each static image takes its nearest gimbal image)")  # fmt: skip
@@ -489,14 +490,16 @@ def add_vio_flags(v: argparse.ArgumentParser) -> None:
         "variable per landmark with robust reprojection factors; smart (experimental): one GTSAM smart projection "
         "factor per landmark (0.69x the main process's CPU on the 60 s benchmark flight with --lag 2.5, same "
         "translation RMSE, 1.2-1.4x the joint RMSE); needs estimated time offsets and no further cameras")  # fmt: skip
-    opt(v, "--persistent-landmarks", "smoother.persistent_landmarks", choices=["all", "gimbal", "none"],
-        help="which landmarks stay in the window while they are tracked: all (default); none: every landmark "
-        "leaves with the oldest keyframe that saw it when it was made (its information kept as a prior on the "
-        "keyframe states, triangulated afresh if still tracked), so no dense landmark marginal; gimbal: those a "
-        "gimbal camera saw stay. With --lag 2.5, none takes 0.60x the main process's CPU and 0.69x the wall time "
-        "over eight 60 s benchmark flights, with translation and joint RMSE pooled within 3.5 %% of all's "
-        "(benchmarks/bench_vio_persistence.py; README, VIO throughput), but on the unsynchronized benchmark flight "
-        "(gimbal camera at 30 Hz on its own clock) 1.19x the translation RMSE of all: a warning says so")  # fmt: skip
+    opt(v, "--persistent-landmarks", "smoother.persistent_landmarks", choices=["auto", "all", "gimbal", "none"],
+        help="which landmarks stay in the window while they are tracked: all; none: every landmark leaves with the "
+        "oldest keyframe that saw it when it was made (its information kept as a prior on the keyframe states, "
+        "triangulated afresh if still tracked), so no dense landmark marginal; gimbal: those a gimbal camera saw "
+        "stay; auto (default): none with a 2.5 s window when the gimbal camera's images share the static camera's "
+        "stamps (within 1 ms) and there is no further camera, else all with 1.5 s. Over eight synchronized 60 s "
+        "benchmark flights none with 2.5 s takes 0.64x the wall time of all with 1.5 s at the same translation and "
+        "joint RMSE (pooled within 3.5 %%; benchmarks/bench_vio_persistence.py; README, VIO throughput); on the "
+        "unsynchronized benchmark flight (gimbal camera at 30 Hz on its own clock) it had 1.19x the translation RMSE "
+        "of all: a warning says so when it is asked for there")  # fmt: skip
     opt(v, "--start", "run.start_s", type=float, metavar="S", help="skip the first S seconds of the bag (from its "
         "first IMU sample); the VIO then starts in motion unless the body is at rest there")  # fmt: skip
     opt(v, "--initialization", "smoother.initialization", choices=["auto", "standstill", "motion"], help="how the VIO "

@@ -266,6 +266,8 @@ def vio_health(result: VioResult, imu: ImuConfig, options: VioOptions) -> Health
     """Every health check of the trajectory ``result`` (module docstring)."""
     report = HealthReport("trajectory")
     stats: dict[str, Any] = result.stats
+    # the window the run used (VioOptions.resolved), else the options' own
+    lag = float(stats.get("window", {}).get("lag_s") or options.resolved(False).window_s)
     limits = DivergenceLimits.from_options(options, imu)
     n = int(result.timestamps_ns.size)
     need = options.min_track_keyframes
@@ -317,7 +319,7 @@ def vio_health(result: VioResult, imu: ImuConfig, options: VioOptions) -> Health
             "divergences",
             not bad,
             f"{len(events)} divergence/failed-update events during the run, {len(bad)} not recovered within one "
-            f"window ({options.lag:g} s)" + (f"; first: {bad[0]['reason']} at t_ns {bad[0]['t_ns']}" if bad else ""),
+            f"window ({lag:g} s)" + (f"; first: {bad[0]['reason']} at t_ns {bad[0]['t_ns']}" if bad else ""),
             ""
             if not bad
             else "the estimate kept diverging after restarts: check the IMU noise densities, T_sI and the camera "
@@ -341,7 +343,7 @@ def vio_health(result: VioResult, imu: ImuConfig, options: VioOptions) -> Health
         )
     blind = stats.get("longest_without_vision_s")
     if blind is not None:
-        limit = 2.0 * options.lag
+        limit = 2.0 * lag
         ok = bool(blind <= limit)
         report.add(
             HealthCheck(

@@ -44,6 +44,7 @@ from dcc_fg.sources.vio_bag import VioBag
 from dcc_fg.util.allocator import reuse_large_buffers
 from dcc_fg.vio.backend import NS, InitialState, VioOptions, VioResult, VioSmoother, timing_stats
 from dcc_fg.vio.backend.motion_init import StartSelector, start_sigmas
+from dcc_fg.vio.backend.options import SYNCHRONIZED_GAP_MS
 from dcc_fg.vio.frontend import FrontendConfig, GimbalHint, gimbal_outliers
 from dcc_fg.vio.joint_init import JointFit, fit_joint_angles
 from dcc_fg.vio.worker import (
@@ -162,31 +163,40 @@ def check_time_offsets(vb: VioBag, options: VioOptions) -> None:
             )
 
 
-#: Largest static <-> gimbal pairing gap (ms) of a bag still counted as synchronized by
-#: :func:`warn_persistence_on_unsynchronized`.
-SYNCHRONIZED_GAP_MS = 1.0
-
-
-def warn_persistence_on_unsynchronized(vb: VioBag, options: VioOptions) -> bool:
-    """Warn (and return True) when landmarks do not all persist while the gimbal camera runs on its own
-    clock (gimbal images without a static partner, or pairs more than :data:`SYNCHRONIZED_GAP_MS` apart):
-    on the unsynchronized flight of ``benchmarks/bench_unsynchronized_vio.py`` (20 / 30 Hz, offsets 5 /
-    15 ms) ``persistent_landmarks='none'`` with a 2.5 s window gave 1.19x the translation RMSE of ``all``
-    (0.032 % against 0.027 %; on the synchronized flight 0.79x) and 1.56x its own synchronized flight's,
-    where the issue asks for at most 1.2x (README, VIO throughput)."""
+def bag_synchronized(vb: VioBag, mode: str, cameras: tuple[RunCamera, ...]) -> bool:
+    """Whether the bag's cameras expose together (:meth:`VioOptions.resolved`): no further camera, and no
+    gimbal topic (``mono``) or every gimbal image paired with a static image within
+    :data:`~dcc_fg.vio.backend.options.SYNCHRONIZED_GAP_MS`."""
+    if cameras:
+        return False
+    if mode == "mono":
+        return True
     stats = vb.pairing_statistics
-    if options.persistent_landmarks == "all" or options.mode == "mono" or stats is None:
+    if stats is None:
         return False
     gap = stats.get("gap_max_ms")
     unpaired = int(stats.get("unpaired_dynamic") or 0)
-    if not unpaired and (gap is None or float(gap) <= SYNCHRONIZED_GAP_MS):
+    return not unpaired and (gap is None or float(gap) <= SYNCHRONIZED_GAP_MS)
+
+
+def warn_persistence_on_unsynchronized(vb: VioBag, options: VioOptions, synchronized: bool) -> bool:
+    """Warn (and return True) when landmarks do not all persist (``persistent_landmarks`` given as ``none``
+    or ``gimbal``; ``auto`` picks ``all`` there) while the gimbal camera runs on its own clock
+    (:func:`bag_synchronized` False): on the unsynchronized flight of
+    ``benchmarks/bench_unsynchronized_vio.py`` (20 / 30 Hz, offsets 5 / 15 ms) ``persistent_landmarks='none'``
+    with a 2.5 s window gave 1.19x the translation RMSE of ``all`` (0.032 % against 0.027 %; on the
+    synchronized flight 0.79x) and 1.56x its own synchronized flight's, where the issue asks for at most
+    1.2x (README, VIO throughput)."""
+    if options.persistent_landmarks in ("all", "auto") or options.mode == "mono" or synchronized:
         return False
+    stats = vb.pairing_statistics or {}
+    gap = stats.get("gap_max_ms")
     log.warning(
         "%s: the gimbal camera is not synchronized with the static camera (%d gimbal images without a partner, "
         "largest pairing gap %s ms) and persistent_landmarks is '%s': on the benchmark's unsynchronized flight "
-        "that gave 1.2x the translation error of 'all' (--persistent-landmarks all)",
+        "that gave 1.2x the translation error of 'all' (--persistent-landmarks all or auto)",
         vb.path,
-        unpaired,
+        int(stats.get("unpaired_dynamic") or 0),
         "-" if gap is None else f"{float(gap):.1f}",
         options.persistent_landmarks,
     )
@@ -529,7 +539,11 @@ def _open_run(
     )
     check_time_offsets(vb, options)
     check_further_sync(vb, cameras, pipeline.max_further_gap_ms)
-    warn_persistence_on_unsynchronized(vb, options)
+    synchronized = bag_synchronized(vb, options.mode, cameras)
+    warn_persistence_on_unsynchronized(vb, options, synchronized)
+    options = options.resolved(synchronized)
+    window = options.persistent_landmarks, options.window_s
+    log.info("landmarks persistent: %s, window %g s (cameras %ssynchronized)", *window, "" if synchronized else "not ")
     if options.stamp_jitter is None:
         options = dataclasses.replace(options, stamp_jitter=vb.stamp_jitter())
     t_first, t_last = int(vb.imu.t_ns[0]), int(vb.imu.t_ns[-1])

@@ -154,7 +154,7 @@ class ExposureModel:
         if not self.active or limit is None or self.started_ns is None:
             return
         since = t_ns - (self.started_ns if self.last_check_ns is None else self.last_check_ns)
-        if since < max(FREEZE_CHECK_PERIOD_S, self.opt.lag) * NS:
+        if since < max(FREEZE_CHECK_PERIOD_S, self.opt.window_s) * NS:
             return
         self.last_check_ns = t_ns
         sigma = self.marginal_sigma(smoother)

@@ -18,7 +18,7 @@ from dcc_fg.io.pairing import stamp_jitter_s
 from dcc_fg.model import GimbalCalibration
 from dcc_fg.vio.backend.landmarks import validate_frames
 from dcc_fg.vio.backend.motion_init import StartSelector, start_sigmas
-from dcc_fg.vio.backend.options import NS, InitialState, VioOptions, VioResult
+from dcc_fg.vio.backend.options import NS, SYNCHRONIZED_GAP_MS, InitialState, VioOptions, VioResult
 from dcc_fg.vio.backend.smoother import VioSmoother
 
 log = logging.getLogger(__name__)
@@ -43,6 +43,8 @@ def run_vio(
     """
     options = options or VioOptions()
     validate_frames(frames)
+    if not options.is_resolved:
+        options = options.resolved(frames_synchronized(frames, options.mode))
     if options.stamp_jitter is None:
         options = dataclasses.replace(options, stamp_jitter=frame_stamp_jitter(frames))
     t_start = time.perf_counter()
@@ -76,6 +78,17 @@ def run_vio(
     duration = (frames[-1].timestamp_ns - frames[0].timestamp_ns) / NS
     res.stats.update(timing_stats(time.perf_counter() - t_start, duration, len(frames)))
     return res
+
+
+def frames_synchronized(frames: Sequence[TrackFrame], mode: str) -> bool:
+    """Whether the frames' cameras expose together (:meth:`VioOptions.resolved`): no further camera, and
+    no gimbal image (``mono``) or every gimbal image within :data:`~.options.SYNCHRONIZED_GAP_MS` of its
+    static image's stamp."""
+    if any(f.extra for f in frames):
+        return False
+    if mode == "mono":
+        return True
+    return all(f.dynamic_timestamp_ns is None or abs(f.dynamic_gap_s) * 1e3 <= SYNCHRONIZED_GAP_MS for f in frames)
 
 
 def frame_stamp_jitter(frames: list[TrackFrame]) -> tuple[float, float]:

@@ -83,8 +83,13 @@ class VioSmoother:
         cameras: Sequence[RunCamera] = (),
     ) -> None:
         """``cameras``: the further cameras of an N-camera run (run index >= 2,
-        :func:`dcc_fg.data.cameras.run_cameras`); their tracks come in :attr:`TrackFrame.extra`."""
+        :func:`dcc_fg.data.cameras.run_cameras`); their tracks come in :attr:`TrackFrame.extra`.
+        ``options`` not resolved (``persistent_landmarks`` ``auto`` or ``lag`` None) are resolved as for
+        unsynchronized cameras (every landmark persistent, 1.5 s): the callers that see the data
+        (:func:`~.runner.run_vio`, :func:`dcc_fg.vio.pipeline.run_vio_bag`) resolve them from it first."""
         validate_imu(imu)
+        if not options.is_resolved:
+            options = options.resolved(synchronized=False)
         self.imu = imu
         self.cfg = imu_config
         self.opt = options
@@ -129,6 +134,7 @@ class VioSmoother:
             "extra_obs": {c.name: 0 for c in cameras},
             "gated": 0,
             "failed_updates": 0,
+            "window": {"persistent_landmarks": options.persistent_landmarks, "lag_s": options.window_s},
         }
         # recovery bookkeeping (module docstring)
         self.limits = DivergenceLimits.from_options(options, imu_config)
@@ -754,7 +760,7 @@ class VioSmoother:
     ) -> None:
         """New landmarks from ready tracks: value, a very weak prior (keeps a landmark determined
         if all its projections fail cheirality) and the factors of every buffered observation."""
-        start = window_start_ns(t, self.kf_times[k - 1] if k >= 1 else None, self.opt.lag)
+        start = window_start_ns(t, self.kf_times[k - 1] if k >= 1 else None, self.opt.window_s)
         made = self.landmarks.triangulate_ready(k, t, self.kf_times, start, self._T_Wc, self.opt)
         noise = gtsam.noiseModel.Isotropic.Sigma(3, self.opt.landmark_prior_sigma)
         for new in made:
@@ -814,9 +820,9 @@ class VioSmoother:
         k = self.k
         t = self.kf_times[k]
         dt = t - self.kf_times[k - 1] if k - 1 in self.kf_times else 0
-        cutoff = t + 2 * dt - int(self.opt.lag * NS)
+        cutoff = t + 2 * dt - int(self.opt.window_s * NS)
         est = self.window.estimate()
-        oldest = t - 2 * int(self.opt.lag * NS)  # older keyframes have left the window
+        oldest = t - 2 * int(self.opt.window_s * NS)  # older keyframes have left the window
         for kk in range(k, -1, -1):
             if kk not in self.kf_times:
                 continue
@@ -849,7 +855,7 @@ class VioSmoother:
         if self.opt.mode == "dcc":
             self.theta = est.atVector(theta_key(k))
         self.chains.refresh(est, self.kf_times, k)
-        cutoff = self.kf_times[k] - int(self.opt.lag * NS)
+        cutoff = self.kf_times[k] - int(self.opt.window_s * NS)
         if self.structureless is None:
             self.landmarks.refresh(est, cutoff)
         else:
@@ -973,7 +979,7 @@ class VioSmoother:
                     "reason": seg["reason"],
                 }
             )
-        lag_ns = int(self.opt.lag * NS)
+        lag_ns = int(self.opt.window_s * NS)
         events = []
         for ev in self.divergences:
             seg = next((s for s in segments if s["start_ns"] == ev["t_ns"]), None)

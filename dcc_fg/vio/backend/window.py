@@ -26,8 +26,8 @@ def new_fixed_lag_smoother(options: VioOptions) -> Any:
         p = gtsam.ISAM2Params()
         p.setRelinearizeThreshold(options.relinearize_threshold)
         p.relinearizeSkip = 1
-        return gtsam.IncrementalFixedLagSmoother(options.lag, p)
-    return gtsam.BatchFixedLagSmoother(options.lag)
+        return gtsam.IncrementalFixedLagSmoother(options.window_s, p)
+    return gtsam.BatchFixedLagSmoother(options.window_s)
 
 
 def key_timestamps(stamps: dict[int, int]) -> gtsam.FixedLagSmootherKeyTimestampMap:
@@ -127,11 +127,12 @@ def anchor_factors(
 
 
 class FixedLagWindow:
-    """The gtsam fixed-lag smoother of a run, replaced by a fresh one on :meth:`restart`."""
+    """The gtsam fixed-lag smoother of a run, replaced by a fresh one on :meth:`restart`; options not yet
+    resolved (:meth:`VioOptions.resolved`) are resolved as for unsynchronized cameras, as the smoother does."""
 
     def __init__(self, options: VioOptions) -> None:
-        self.opt = options
-        self.smoother = new_fixed_lag_smoother(options)
+        self.opt = options if options.is_resolved else options.resolved(synchronized=False)
+        self.smoother = new_fixed_lag_smoother(self.opt)
 
     def update(
         self,
