@@ -118,9 +118,16 @@ def test_observer_sees_every_frame(dcc: dict[str, Any]) -> None:
 
 
 def test_front_end_process_runs_are_identical(flights: dict[str, FlightBag]) -> None:
-    """Two dcc runs of the same bag with the front end in its own process give the same trajectory and
-    joint angles to the last bit (the child applies the smoother's drops and joint angles at a fixed frame,
-    :mod:`dcc_fg.vio.worker`), whatever the load on the machine."""
+    """Two dcc runs of the same bag with the front end in its own process give the same keyframes and the
+    same trajectory and joint angles (the child applies the smoother's drops and joint angles at a fixed
+    frame, :mod:`dcc_fg.vio.worker`), whatever the load on the machine. Before that rule the first joint's
+    RMSE of a 60 s flight varied by 18 % between two runs. Not to the last bit: with the default on this
+    synchronized flight (no persistent landmark, 2.5 s) two runs in one process, inline or with the worker,
+    and pinned to one core, differ by 1e-11 to 8e-9 (m, and in the rotation entries); with every landmark
+    persistent and 1.5 s they are bit-identical (ad-hoc runs on this test's flight). The
+    order of some floating-point sums depends on where things sit in memory (not identified whether in the
+    smoother's marginalization or the linear algebra), so 1e-6 is asserted: far below what a
+    scheduling-dependent message would change (millimetres)."""
     fb = flights["moving"]
     cal, imu = load_flight_calibration(fb.calibration)
     opts = VioOptions(mode="dcc", sigma=1.0 / float(cal.static_camera.intrinsics[0]), keyframe_every=3)  # type: ignore[union-attr]
@@ -129,8 +136,8 @@ def test_front_end_process_runs_are_identical(flights: dict[str, FlightBag]) -> 
     runs = [res for res, _ in both]
     assert runs[0].timestamps_ns.size > 50
     np.testing.assert_array_equal(runs[0].timestamps_ns, runs[1].timestamps_ns)
-    np.testing.assert_array_equal(runs[0].T_WI, runs[1].T_WI)
-    np.testing.assert_array_equal(runs[0].theta, runs[1].theta)
+    np.testing.assert_allclose(runs[0].T_WI, runs[1].T_WI, rtol=0, atol=1e-6)
+    np.testing.assert_allclose(runs[0].theta, runs[1].theta, rtol=0, atol=1e-6)
 
 
 def test_scc_outputs(scc: dict[str, Any]) -> None:

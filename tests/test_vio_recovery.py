@@ -110,7 +110,7 @@ def test_imu_gap_starts_a_new_segment_that_recovers(clean_run: dict[str, Any]) -
     assert gap.stats["imu_gaps"] == 1
     # no keyframe inside the gap
     assert not np.any((gap.timestamps_ns > g0) & (gap.timestamps_ns < g1))
-    t_eval = segs[1]["start_ns"] + int(f.options.lag * NS)
+    t_eval = segs[1]["start_ns"] + int(gap.stats["window"]["lag_s"] * NS)
     ape_gap = per_segment_ape(gap, f.gt, t_eval)
     ape_clean = per_segment_ape(clean, f.gt, t_eval)
     print(
@@ -179,7 +179,8 @@ def test_a_window_restart_that_fails_falls_back_to_the_state_alone(
     assert res.stats["restart_fallbacks"] == 1 and "restarting from its state alone" in caplog.text
     assert res.stats["segment_count"] >= 2 and res.timestamps_ns[-1] > t0 + int(13 * NS)
     # not diverged: per-segment APE after the restart within a few cm (a divergent restart is metres)
-    assert per_segment_ape(res, f.gt, res.stats["segments"][1]["start_ns"] + int(f.options.lag * NS)) < 0.05
+    t_eval = res.stats["segments"][1]["start_ns"] + int(res.stats["window"]["lag_s"] * NS)
+    assert per_segment_ape(res, f.gt, t_eval) < 0.05
     calls.update(n=0, fail=2)
     with pytest.raises(EstimatorError, match=r"could not be restarted at keyframe \d+ .* even from its state alone"):
         f.run(gap_imu)
@@ -200,7 +201,7 @@ def test_joint_sigmas_match_the_joint_errors(clean_run: dict[str, Any], tmp_path
     err = res.theta - f.truth.theta[f.truth.index_of(res.timestamps_ns)]
     nees = np.sum((err[ok] / res.theta_sigma[ok]) ** 2, axis=1)
     L = err.shape[1]
-    n_windows = int(DURATION / opts.lag)
+    n_windows = int(DURATION / res.stats["window"]["lag_s"])
     lo, hi = chi2.ppf([0.025, 0.975], L * n_windows) / n_windows
     print(f"\njoint-angle NEES {nees.mean():.2f} (L = {L}; 95 % interval {lo:.2f}-{hi:.2f} for {n_windows} windows)")
     assert lo <= nees.mean() <= hi
