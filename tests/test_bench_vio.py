@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from benchmarks import bench_vio_persistence as persistence
+from benchmarks import bench_vio_revision as revision
 from benchmarks.bench_vio import main
 
 
@@ -46,6 +47,24 @@ def test_bench_vio_persistence_over_flights(capsys) -> None:  # type: ignore[no-
         assert all(r["failed_updates"] == 0 and r["parallel"] and r["joint_rmse_rad"] is not None for r in pair)
     j1 = [pair[1]["joint_rmse_rad"][0] / pair[0]["joint_rmse_rad"][0] for pair in pairs]
     assert out["joint_1_rmse"]["min"] == min(j1) and out["joint_1_rmse"]["max"] == max(j1)
+
+
+@pytest.mark.slow  # renders one 10 s flight and runs it twice in child processes (~40 s)
+def test_bench_vio_revision_against_itself(capsys, tmp_path) -> None:  # type: ignore[no-untyped-def]
+    """This checkout as the "old" one: both children import this dcc_fg (checked by the benchmark) and, the
+    front-end process being deterministic (to 1e-8 with the synchronized default), give the same accuracy;
+    a folder without dcc_fg is refused before any work."""
+    out = revision.main(["--old", str(revision.THIS_CHECKOUT), "--seeds", "0", "--duration", "10"])
+    text = capsys.readouterr().out
+    assert text.count("seed ") == 1 and "1 flights, this checkout / " in text
+    ((before, after),) = out["runs"]
+    assert before["code"] == after["code"] == str(revision.THIS_CHECKOUT)
+    for key in ("translation_rmse", "joint_1_rmse", "joint_2_rmse"):
+        assert out[key]["pooled"] == pytest.approx(1.0, abs=1e-4)
+    assert out["wall_median"] > 0 and after["real_time_factor"] > 0
+    with pytest.raises(SystemExit):
+        revision.main(["--old", str(tmp_path)])
+    assert "no dcc_fg package there" in capsys.readouterr().err
 
 
 def test_persistence_summary_and_seeds() -> None:

@@ -286,6 +286,21 @@ def test_a_bag_refused_stops_the_front_end_process(tmp_path: Path, monkeypatch: 
     assert len(started) == 1 and started[0].poll() is not None
 
 
+def test_the_front_end_process_imports_the_parents_dcc_fg(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Started from a folder holding another ``dcc_fg`` (a checkout of another version), the front end's
+    process still imports the parent's: ``python -m`` would put the working directory first, and a child
+    of another version deadlocked with its parent (found running an old checkout's VIO from this one's
+    folder). Here the folder's ``dcc_fg`` fails to import; the child reaches its spec (EOF: exit 0)."""
+    fake = tmp_path / "dcc_fg"
+    (fake / "vio").mkdir(parents=True)
+    (fake / "__init__.py").write_text("raise ImportError('the working directory dcc_fg was imported')\n")
+    (fake / "vio" / "__init__.py").write_text("")
+    monkeypatch.chdir(tmp_path)
+    proc = worker_module.spawn_frontend_process()
+    _, _ = proc.communicate(timeout=60)
+    assert proc.returncode == 0
+
+
 def test_non_persistent_landmarks_on_unsynchronized_cameras_warn(tmp_path: Path, caplog) -> None:  # noqa: ANN001
     """``persistent_landmarks`` given as ``none`` or ``gimbal`` with a gimbal camera on its own clock is warned
     about (``none`` measured 1.19x the translation RMSE of ``all`` there); synchronized pairs, ``all`` or

@@ -313,10 +313,14 @@ def spawn_frontend_process() -> subprocess.Popen[bytes]:
     """Start the front end's child process: a fresh interpreter that imports its modules (about 0.6 s)
     and waits for its :class:`WorkerSpec` on stdin, so the parent can read the bag meanwhile."""
     # a fresh interpreter: no fork of a process that may hold GTSAM/OpenCV worker threads, and
-    # no re-import of the caller's main module (multiprocessing's spawn would need a guard)
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in sys.path if p))
+    # no re-import of the caller's main module (multiprocessing's spawn would need a guard). It
+    # imports what the parent imports: the parent's sys.path as PYTHONPATH (its '' as the working
+    # directory), and -P keeps ``-m`` from putting the working directory first (a dcc_fg checkout
+    # there, of another version than the parent's, would otherwise be the child's, and the two
+    # would deadlock on a different protocol)
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(p or os.getcwd() for p in sys.path))
     return subprocess.Popen(
-        [sys.executable, "-m", "dcc_fg.vio.worker"], stdin=subprocess.PIPE, stdout=subprocess.PIPE, env=env
+        [sys.executable, "-P", "-m", "dcc_fg.vio.worker"], stdin=subprocess.PIPE, stdout=subprocess.PIPE, env=env
     )
 
 

@@ -1,0 +1,112 @@
+"""Benchmark: the whole VIO of another dcc-fg checkout against this one, over several flights.
+
+For issue 18's before/after: check out the code from before the work (``git worktree add ../before
+5eea12d``) and pass it as ``--old``. For every seed in ``--seeds`` a ``dcc`` flight of ``--duration``
+seconds (the paper's pattern, the gimbal moving freely) is rendered with this checkout (not timed;
+``--keep DIR`` keeps and reuses the bags, ``DIR/seed<N>/moving``, as ``bench_vio_persistence.py`` does),
+then run once with each checkout, alternating, each run in a fresh process
+(``benchmarks/vio_run_child.py`` with ``PYTHONPATH`` set to the checkout), with each checkout's defaults
+and the front end in its own process. Times are the child's wall time for the whole pipeline (bag reading,
+front end, smoother) over the data duration.
+
+Printed: one line per flight (real-time factor, translation and joint RMSE of both) and the ratios of
+this checkout over the old one over all flights: pooled accuracy (RMS over the flights), mean, min and
+max per flight, median wall-time and main-process CPU ratios and the median real-time factors. Checkouts
+from before the deterministic front-end process (3a874ef) give different accuracy from run to run, so
+one flight decides nothing; the pooled ratios over eight do.
+
+Usage: ``python benchmarks/bench_vio_revision.py --old DIR [--seeds 0-7] [--duration 60] [--keep DIR]
+[--json OUT]``
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+from typing import Any
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import bench_vio  # noqa: E402
+import bench_vio_cluster as cluster_bench  # noqa: E402
+import bench_vio_persistence as persistence  # noqa: E402
+
+HERE = Path(__file__).resolve().parent
+THIS_CHECKOUT = HERE.parent
+
+
+def run_checkout(checkout: Path, flight: Path, mode: str = "dcc") -> dict[str, Any]:
+    """One run of ``flight`` (a rendered flight folder) with the dcc-fg of ``checkout``, in a fresh process."""
+    env = dict(os.environ, PYTHONPATH=str(checkout))
+    # cwd: checkouts before the worker's ``-P`` start their front-end process with ``python -m``, which
+    # imports the working directory's dcc_fg first; run in the checkout so that it is the same one
+    proc = subprocess.run(
+        [sys.executable, str(HERE / "vio_run_child.py"), str(flight), mode],
+        env=env,
+        cwd=checkout,
+        capture_output=True,
+        text=True,
+    )
+    if proc.returncode != 0:
+        tail = "\n".join(proc.stderr.strip().splitlines()[-5:])
+        raise RuntimeError(f"{checkout}: the run of {flight} failed (exit {proc.returncode}):\n{tail}")
+    out = json.loads(proc.stdout.strip().splitlines()[-1])
+    if Path(out["code"]) != checkout.resolve():
+        raise RuntimeError(f"the child imported dcc_fg from {out['code']}, not from {checkout}")
+    return out
+
+
+def main(argv: list[str] | None = None) -> dict[str, Any]:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--old", required=True, help="root of the other dcc-fg checkout (holds dcc_fg/)")
+    p.add_argument("--seeds", default="0-7", help="flight seeds, e.g. 0-7 or 0,2,5 (default 0-7)")
+    p.add_argument("--duration", type=float, default=60.0, help="flight duration, s (default 60)")
+    p.add_argument("--keep", help="write (and reuse) the flights in this folder (default: a temporary one)")
+    p.add_argument("--json", help="also write the runs and ratios to this JSON file")
+    a = p.parse_args(argv)
+    old = Path(a.old).resolve()
+    if not (old / "dcc_fg" / "__init__.py").is_file():
+        p.error(f"--old {a.old}: no dcc_fg package there (give the root of a dcc-fg checkout)")
+    seeds = persistence.parse_seeds(a.seeds)
+    cfg = cluster_bench.flight_config(a.duration)
+    pairs = []
+    with tempfile.TemporaryDirectory() as tmp:
+        root = Path(a.keep or tmp)
+        for seed in seeds:
+            folder = root / f"seed{seed}"
+            folder.mkdir(parents=True, exist_ok=True)
+            fb = bench_vio._flight(folder / "moving", cfg, seed, moving=True)
+            before = run_checkout(old, fb.bag.parent)
+            after = run_checkout(THIS_CHECKOUT, fb.bag.parent)
+            pairs.append((before, after))
+            m0, m1 = persistence._metrics(before), persistence._metrics(after)
+            print(
+                f"seed {seed}: real-time factor {before['real_time_factor']:.3f} -> {after['real_time_factor']:.3f}  "
+                f"transl. {m0['translation_rmse']:.4f} -> {m1['translation_rmse']:.4f} %  joint 1 "
+                f"{m0['joint_1_rmse']:.2e} -> {m1['joint_1_rmse']:.2e}  joint 2 {m0['joint_2_rmse']:.2e} -> "
+                f"{m1['joint_2_rmse']:.2e} rad",
+                flush=True,
+            )
+    out = persistence.summarize(pairs)
+    print(
+        f"{len(pairs)} flights, this checkout / {old}: "
+        + ", ".join(
+            f"{k} pooled {v['pooled']:.3f} (mean {v['mean']:.3f}, {v['min']:.2f}-{v['max']:.2f})"
+            for k, v in out.items()
+            if isinstance(v, dict)
+        )
+        + f"; wall time median {out['wall_median']:.2f}, main-process CPU median {out['main_cpu_median']:.2f}; "
+        f"median real-time factor {out['real_time_factor_median'][0]:.3f} -> {out['real_time_factor_median'][1]:.3f}"
+    )
+    out["runs"] = [list(p) for p in pairs]
+    if a.json:
+        Path(a.json).write_text(json.dumps(out, indent=1))
+    return out
+
+
+if __name__ == "__main__":
+    main()
