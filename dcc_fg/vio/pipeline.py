@@ -13,7 +13,7 @@ implied by the *updated* extrinsics T_ds(theta_prev), T_ds(theta_cur) and the st
 motion seen by its own tracks are rejected (:meth:`Frontend.dynamic_outliers`): the front end stops
 tracking them and the smoother's gate drops their observations from the current keyframe.
 
-The front end runs inline or, optionally, in a child process ``keyframe_every + 2`` frames ahead of the
+The front end runs inline or, optionally, in a child process ``keyframe_every + 1`` frames ahead of the
 smoother, on the second core (:mod:`dcc_fg.vio.worker`; GTSAM holds the GIL, so a thread would
 not overlap); it tracks each frame with the joint angles extrapolated linearly from the last two keyframe estimates
 (the gimbal moves at up to ~60 deg/s: one 20 Hz frame is 3 deg), which only the static <-> gimbal
@@ -78,7 +78,7 @@ class PipelineOptions:
     parameters (default: :meth:`FrontendConfig.for_resolution` of the static camera);
     ``fit_initial_joints`` (``dcc``) starts the joint angles from the first frame's static <-> gimbal
     matches (:func:`~dcc_fg.vio.joint_init.fit_joint_angles`) instead of taking the guess as is;
-    ``worker`` runs the front end ``inline`` or in a child ``process`` ``keyframe_every + 2`` frames
+    ``worker`` runs the front end ``inline`` or in a child ``process`` ``keyframe_every + 1`` frames
     ahead of the smoother, on a second core (deterministic: the same tracks on every run,
     :mod:`dcc_fg.vio.worker`); ``auto`` (default) picks ``process`` when this process may use at least two
     cores (see :func:`~dcc_fg.vio.worker.resolve_mode`;
@@ -453,7 +453,7 @@ def frontend_spec(
         t_range,
         snapshots=options.mode == "dcc" and pipeline.reject_dynamic,
         extra=cameras,
-        lead_frames=options.keyframe_every + 2,
+        lead_frames=options.keyframe_every + 1,
         scan=scan,
     )
 

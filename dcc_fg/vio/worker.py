@@ -20,9 +20,11 @@ took whatever had arrived, and the first joint's RMSE of one 60 s flight varied 
 runs). Inline, frame ``n`` sees the messages of frame ``n - 1`` (the same rule with a lead of 1, but
 no overlap). The lead must span a keyframe: the smoother's update on a keyframe takes several frames'
 worth of tracking time, and with a lead of 2 or 3 (``keyframe_every`` 3) the child waited through it
-(1.5x the wall time of the free-running child on the 60 s flight); ``keyframe_every + 2`` frames
-keep the overlap. A longer lead only delays when a rejected track stops being tracked and how fresh
-the joint-angle guess is.
+(1.5x the wall time of the free-running child on the 60 s flight); ``keyframe_every + 1`` frames
+keep the overlap. A longer lead delays when a rejected track stops being tracked and how fresh the
+joint-angle guess is, and that costs accuracy: over eight 60 s flights (``keyframe_every`` 3,
+``benchmarks/bench_vio_revision.py``) ``keyframe_every + 2`` had 1.09x / 1.14x the joint RMSE and
+1.01x the translation RMSE of ``keyframe_every + 1``, in 1.05x the wall time.
 
 Both modes have the same interface (:class:`FrontendWorker`): iterate for :class:`Tracked`
 frames, :meth:`~FrontendWorker.push_theta`, :meth:`~FrontendWorker.drop`, and after the
@@ -148,7 +150,7 @@ class WorkerSpec:
     t_range: tuple[int, int]
     snapshots: bool
     extra: tuple[RunCamera, ...] = ()
-    lead_frames: int = 4  # what the pipeline gives the default keyframe_every (2): keyframe_every + 2
+    lead_frames: int = 3  # what the pipeline gives the default keyframe_every (2): keyframe_every + 1
     scan: ImuImageStamps | None = None
 
 
