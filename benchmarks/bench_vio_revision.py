@@ -1,9 +1,10 @@
 """Benchmark: the whole VIO of another dcc-fg checkout against this one, over several flights.
 
 For issue 18's before/after: check out the code from before the work (``git worktree add ../before
-5eea12d``) and pass it as ``--old``. For every seed in ``--seeds`` a ``dcc`` flight of ``--duration``
-seconds (the paper's pattern, the gimbal moving freely) is rendered with this checkout (not timed;
-``--keep DIR`` keeps and reuses the bags, ``DIR/seed<N>/moving``, as ``bench_vio_persistence.py`` does),
+5eea12d``) and pass it as ``--old``. For every seed in ``--seeds`` a flight of ``--duration`` seconds (the
+paper's pattern; ``--mode dcc``: the gimbal moving freely, ``scc``: locked at its mid position) is rendered
+with this checkout (not timed; ``--keep DIR`` keeps and reuses the bags, ``DIR/seed<N>/moving`` or
+``locked``, as ``bench_vio_persistence.py`` and ``bench_vio.py`` do),
 then run once with each checkout, alternating, each run in a fresh process
 (``benchmarks/vio_run_child.py`` with ``PYTHONPATH`` set to the checkout), with each checkout's defaults
 and the front end in its own process. Times are the child's wall time for the whole pipeline (bag reading,
@@ -15,8 +16,8 @@ max per flight, median wall-time and main-process CPU ratios and the median real
 from before the deterministic front-end process (3a874ef) give different accuracy from run to run, so
 one flight decides nothing; the pooled ratios over eight do.
 
-Usage: ``python benchmarks/bench_vio_revision.py --old DIR [--seeds 0-7] [--duration 60] [--keep DIR]
-[--json OUT]``
+Usage: ``python benchmarks/bench_vio_revision.py --old DIR [--mode dcc|scc] [--seeds 0-7] [--duration 60]
+[--keep DIR] [--json OUT]``
 """
 
 from __future__ import annotations
@@ -29,6 +30,8 @@ import sys
 import tempfile
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import bench_vio  # noqa: E402
@@ -60,9 +63,32 @@ def run_checkout(checkout: Path, flight: Path, mode: str = "dcc") -> dict[str, A
     return out
 
 
+def summarize(pairs: list[tuple[dict[str, Any], dict[str, Any]]]) -> dict[str, Any]:
+    """:func:`bench_vio_persistence.summarize` for ``dcc`` runs; for ``scc`` (no joint angles) the same
+    with the translation RMSE only."""
+    if all(r["joint_rmse_rad"] is not None for pair in pairs for r in pair):
+        return persistence.summarize(pairs)
+    ratio = np.array([after["normalized_translation_rmse_percent"] / before["normalized_translation_rmse_percent"]
+                      for before, after in pairs])  # fmt: skip
+    a = np.array([before["normalized_translation_rmse_percent"] for before, _ in pairs])
+    b = np.array([after["normalized_translation_rmse_percent"] for _, after in pairs])
+    return {
+        "translation_rmse": {
+            "pooled": float(np.sqrt(np.mean(b**2)) / np.sqrt(np.mean(a**2))),
+            "mean": float(np.mean(ratio)),
+            "min": float(np.min(ratio)),
+            "max": float(np.max(ratio)),
+        },
+        "wall_median": float(np.median([after["wall_s"] / before["wall_s"] for before, after in pairs])),
+        "main_cpu_median": float(np.median([after["cpu_s"] / before["cpu_s"] for before, after in pairs])),
+        "real_time_factor_median": [float(np.median([p[k]["real_time_factor"] for p in pairs])) for k in (0, 1)],
+    }
+
+
 def main(argv: list[str] | None = None) -> dict[str, Any]:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--old", required=True, help="root of the other dcc-fg checkout (holds dcc_fg/)")
+    p.add_argument("--mode", choices=("dcc", "scc"), default="dcc", help="VIO mode (default dcc)")
     p.add_argument("--seeds", default="0-7", help="flight seeds, e.g. 0-7 or 0,2,5 (default 0-7)")
     p.add_argument("--duration", type=float, default=60.0, help="flight duration, s (default 60)")
     p.add_argument("--keep", help="write (and reuse) the flights in this folder (default: a temporary one)")
@@ -79,19 +105,25 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         for seed in seeds:
             folder = root / f"seed{seed}"
             folder.mkdir(parents=True, exist_ok=True)
-            fb = bench_vio._flight(folder / "moving", cfg, seed, moving=True)
-            before = run_checkout(old, fb.bag.parent)
-            after = run_checkout(THIS_CHECKOUT, fb.bag.parent)
+            moving = a.mode == "dcc"
+            fb = bench_vio._flight(folder / ("moving" if moving else "locked"), cfg, seed, moving=moving)
+            before = run_checkout(old, fb.bag.parent, a.mode)
+            after = run_checkout(THIS_CHECKOUT, fb.bag.parent, a.mode)
             pairs.append((before, after))
-            m0, m1 = persistence._metrics(before), persistence._metrics(after)
+            joints = ""
+            if moving:
+                m0, m1 = persistence._metrics(before), persistence._metrics(after)
+                joints = (
+                    f"  joint 1 {m0['joint_1_rmse']:.2e} -> {m1['joint_1_rmse']:.2e}  joint 2 "
+                    f"{m0['joint_2_rmse']:.2e} -> {m1['joint_2_rmse']:.2e} rad"
+                )
             print(
                 f"seed {seed}: real-time factor {before['real_time_factor']:.3f} -> {after['real_time_factor']:.3f}  "
-                f"transl. {m0['translation_rmse']:.4f} -> {m1['translation_rmse']:.4f} %  joint 1 "
-                f"{m0['joint_1_rmse']:.2e} -> {m1['joint_1_rmse']:.2e}  joint 2 {m0['joint_2_rmse']:.2e} -> "
-                f"{m1['joint_2_rmse']:.2e} rad",
+                f"transl. {before['normalized_translation_rmse_percent']:.4f} -> "
+                f"{after['normalized_translation_rmse_percent']:.4f} %" + joints,
                 flush=True,
             )
-    out = persistence.summarize(pairs)
+    out = summarize(pairs)
     print(
         f"{len(pairs)} flights, this checkout / {old}: "
         + ", ".join(

@@ -67,6 +67,20 @@ def test_bench_vio_revision_against_itself(capsys, tmp_path) -> None:  # type: i
     assert "no dcc_fg package there" in capsys.readouterr().err
 
 
+def test_revision_summary_without_joint_angles() -> None:
+    """scc runs (no joint angles): translation ratios only, pooled as RMS over the flights."""
+
+    def run(t: float, wall: float) -> dict[str, object]:
+        return {"normalized_translation_rmse_percent": t, "joint_rmse_rad": None, "wall_s": wall, "cpu_s": wall,
+                "real_time_factor": wall / 60.0}  # fmt: skip
+
+    out = revision.summarize([(run(1.0, 20.0), run(2.0, 10.0)), (run(1.0, 30.0), run(1.0, 30.0))])
+    assert set(out) == {"translation_rmse", "wall_median", "main_cpu_median", "real_time_factor_median"}
+    assert out["translation_rmse"]["pooled"] == pytest.approx(np.sqrt(5.0 / 2.0) / 1.0)
+    assert out["translation_rmse"]["min"] == 1.0 and out["translation_rmse"]["max"] == 2.0
+    assert out["wall_median"] == pytest.approx(0.75) and out["real_time_factor_median"] == pytest.approx([25.0 / 60.0, 20.0 / 60.0])
+
+
 def test_persistence_summary_and_seeds() -> None:
     """The ratios of the persistence benchmark on made-up runs: pooled RMS ratio, mean, range, medians."""
     assert persistence.parse_seeds("0-3,7") == [0, 1, 2, 3, 7] and persistence.parse_seeds("5") == [5]
