@@ -45,16 +45,21 @@ def parse_seeds(text: str) -> list[int]:
 
 
 def _metrics(r: dict[str, Any]) -> dict[str, float]:
-    j1, j2 = r["joint_rmse_rad"]
-    return {"translation_rmse": r["normalized_translation_rmse_percent"], "joint_1_rmse": j1, "joint_2_rmse": j2}
+    """Translation RMSE (%) and, for runs with joint angles (``dcc``), each joint's RMSE (rad)."""
+    out = {"translation_rmse": r["normalized_translation_rmse_percent"]}
+    for j, x in enumerate(r["joint_rmse_rad"] or ()):
+        out[f"joint_{j + 1}_rmse"] = x
+    return out
 
 
 def summarize(pairs: list[tuple[dict[str, Any], dict[str, Any]]]) -> dict[str, Any]:
     """Ratios of the second run of each pair over the first (:func:`bench_vio._ratios` per pair): pooled
-    RMS, mean, min, max per metric; median wall-time and main-process CPU ratios."""
+    RMS, mean, min, max per metric (the joints' only when every run has them); median wall-time and
+    main-process CPU ratios."""
     per_pair = [bench_vio._ratios(fast, ref) for ref, fast in pairs]
     out: dict[str, Any] = {}
-    for key in ("translation_rmse", "joint_1_rmse", "joint_2_rmse"):
+    metrics = [_metrics(r) for pair in pairs for r in pair]
+    for key in [k for k in metrics[0] if all(k in m for m in metrics)]:
         a = np.array([_metrics(ref)[key] for ref, _ in pairs])
         b = np.array([_metrics(fast)[key] for _, fast in pairs])
         ratio = np.array([r[key] for r in per_pair])
@@ -67,6 +72,26 @@ def summarize(pairs: list[tuple[dict[str, Any], dict[str, Any]]]) -> dict[str, A
     out["wall_median"] = float(np.median([r["wall"] for r in per_pair]))
     out["main_cpu_median"] = float(np.median([r["main_cpu"] for r in per_pair]))
     out["real_time_factor_median"] = [float(np.median([p[k]["real_time_factor"] for p in pairs])) for k in (0, 1)]
+    return out
+
+
+def report(pairs: list[tuple[dict[str, Any], dict[str, Any]]], label: str, json_path: str | None) -> dict[str, Any]:
+    """Print the ratios over all pairs (:func:`summarize`) after ``label`` and write them with the runs to
+    ``json_path`` (if given); returns them."""
+    out = summarize(pairs)
+    print(
+        f"{len(pairs)} flights, {label}: "
+        + ", ".join(
+            f"{k} pooled {v['pooled']:.3f} (mean {v['mean']:.3f}, {v['min']:.2f}-{v['max']:.2f})"
+            for k, v in out.items()
+            if isinstance(v, dict)
+        )
+        + f"; wall time median {out['wall_median']:.2f}, main-process CPU median {out['main_cpu_median']:.2f}; "
+        f"median real-time factor {out['real_time_factor_median'][0]:.3f} -> {out['real_time_factor_median'][1]:.3f}"
+    )
+    out["runs"] = [list(p) for p in pairs]
+    if json_path:
+        Path(json_path).write_text(json.dumps(out, indent=1))
     return out
 
 
@@ -98,23 +123,11 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                 f"{m1['joint_2_rmse']:.2e} rad",
                 flush=True,
             )
-    out = summarize(pairs)
-    print(
-        f"{len(pairs)} flights, defaults ({pairs[-1][1]['persistent_landmarks']} persistent, "
-        f"{pairs[-1][1]['lag']:g} s) / "
-        f"previous defaults ({bench_vio.PREVIOUS_PERSISTENT}, {bench_vio.PREVIOUS_LAG:g} s): "
-        + ", ".join(
-            f"{k} pooled {v['pooled']:.3f} (mean {v['mean']:.3f}, {v['min']:.2f}-{v['max']:.2f})"
-            for k, v in out.items()
-            if isinstance(v, dict)
-        )
-        + f"; wall time median {out['wall_median']:.2f}, main-process CPU median {out['main_cpu_median']:.2f}; "
-        f"median real-time factor {out['real_time_factor_median'][0]:.3f} -> {out['real_time_factor_median'][1]:.3f}"
+    label = (
+        f"defaults ({pairs[-1][1]['persistent_landmarks']} persistent, {pairs[-1][1]['lag']:g} s) / "
+        f"previous defaults ({bench_vio.PREVIOUS_PERSISTENT}, {bench_vio.PREVIOUS_LAG:g} s)"
     )
-    out["runs"] = [list(p) for p in pairs]
-    if a.json:
-        Path(a.json).write_text(json.dumps(out, indent=1))
-    return out
+    return report(pairs, label, a.json)
 
 
 if __name__ == "__main__":

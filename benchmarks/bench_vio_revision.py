@@ -31,8 +31,6 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import bench_vio  # noqa: E402
 import bench_vio_cluster as cluster_bench  # noqa: E402
@@ -61,28 +59,6 @@ def run_checkout(checkout: Path, flight: Path, mode: str = "dcc") -> dict[str, A
     if Path(out["code"]) != checkout.resolve():
         raise RuntimeError(f"the child imported dcc_fg from {out['code']}, not from {checkout}")
     return out
-
-
-def summarize(pairs: list[tuple[dict[str, Any], dict[str, Any]]]) -> dict[str, Any]:
-    """:func:`bench_vio_persistence.summarize` for ``dcc`` runs; for ``scc`` (no joint angles) the same
-    with the translation RMSE only."""
-    if all(r["joint_rmse_rad"] is not None for pair in pairs for r in pair):
-        return persistence.summarize(pairs)
-    ratio = np.array([after["normalized_translation_rmse_percent"] / before["normalized_translation_rmse_percent"]
-                      for before, after in pairs])  # fmt: skip
-    a = np.array([before["normalized_translation_rmse_percent"] for before, _ in pairs])
-    b = np.array([after["normalized_translation_rmse_percent"] for _, after in pairs])
-    return {
-        "translation_rmse": {
-            "pooled": float(np.sqrt(np.mean(b**2)) / np.sqrt(np.mean(a**2))),
-            "mean": float(np.mean(ratio)),
-            "min": float(np.min(ratio)),
-            "max": float(np.max(ratio)),
-        },
-        "wall_median": float(np.median([after["wall_s"] / before["wall_s"] for before, after in pairs])),
-        "main_cpu_median": float(np.median([after["cpu_s"] / before["cpu_s"] for before, after in pairs])),
-        "real_time_factor_median": [float(np.median([p[k]["real_time_factor"] for p in pairs])) for k in (0, 1)],
-    }
 
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
@@ -123,21 +99,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                 f"{after['normalized_translation_rmse_percent']:.4f} %" + joints,
                 flush=True,
             )
-    out = summarize(pairs)
-    print(
-        f"{len(pairs)} flights, this checkout / {old}: "
-        + ", ".join(
-            f"{k} pooled {v['pooled']:.3f} (mean {v['mean']:.3f}, {v['min']:.2f}-{v['max']:.2f})"
-            for k, v in out.items()
-            if isinstance(v, dict)
-        )
-        + f"; wall time median {out['wall_median']:.2f}, main-process CPU median {out['main_cpu_median']:.2f}; "
-        f"median real-time factor {out['real_time_factor_median'][0]:.3f} -> {out['real_time_factor_median'][1]:.3f}"
-    )
-    out["runs"] = [list(p) for p in pairs]
-    if a.json:
-        Path(a.json).write_text(json.dumps(out, indent=1))
-    return out
+    return persistence.report(pairs, f"this checkout / {old}", a.json)
 
 
 if __name__ == "__main__":

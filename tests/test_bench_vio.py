@@ -68,13 +68,14 @@ def test_bench_vio_revision_against_itself(capsys, tmp_path) -> None:  # type: i
 
 
 def test_revision_summary_without_joint_angles() -> None:
-    """scc runs (no joint angles): translation ratios only, pooled as RMS over the flights."""
+    """scc runs (no joint angles, as bench_vio_revision --mode scc gives): translation ratios only, pooled
+    as RMS over the flights."""
 
     def run(t: float, wall: float) -> dict[str, object]:
         return {"normalized_translation_rmse_percent": t, "joint_rmse_rad": None, "wall_s": wall, "cpu_s": wall,
                 "real_time_factor": wall / 60.0}  # fmt: skip
 
-    out = revision.summarize([(run(1.0, 20.0), run(2.0, 10.0)), (run(1.0, 30.0), run(1.0, 30.0))])
+    out = persistence.summarize([(run(1.0, 20.0), run(2.0, 10.0)), (run(1.0, 30.0), run(1.0, 30.0))])
     assert set(out) == {"translation_rmse", "wall_median", "main_cpu_median", "real_time_factor_median"}
     assert out["translation_rmse"]["pooled"] == pytest.approx(np.sqrt(5.0 / 2.0) / 1.0)
     assert out["translation_rmse"]["min"] == 1.0 and out["translation_rmse"]["max"] == 2.0
