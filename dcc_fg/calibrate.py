@@ -75,6 +75,7 @@ from dcc_fg.degeneracy import NOMINALS, HeldDirections, held_directions
 from dcc_fg.init import joint_angles_from_T_ds, pnp_pose, robust_pose_level_init, zero_joint_init
 from dcc_fg.joint_motion import FLAT_JOINT_SPAN_RAD, check_joint_motion, never_moves
 from dcc_fg.model import GimbalCalibration
+from dcc_fg.noise_floor import noise_floor, relative_image_noise
 from dcc_fg.util.errors import EstimatorError, stage
 from factors import chain
 from factors.calibration import RobustLoss, SnapshotMeasurements
@@ -90,6 +91,10 @@ MODES = ("encoderless", "encoders", "validate")
 POSE_LEVEL_REL_TOL = 1e-12
 POSE_LEVEL_MAX_ITERATIONS = 200
 FORMULATIONS = ("bundle", "two_way")
+#: How the corner noise of the two cameras is modelled when ``pixel_sigma`` is estimated:
+#: ``per-image`` weights each image by its own noise floor (:func:`dcc_fg.noise_floor.relative_image_noise`),
+#: ``shared`` whitens all with one sigma.
+CORNER_NOISE = ("per-image", "shared")
 logger = logging.getLogger(__name__)
 #: The held directions' prior (dcc_fg.degeneracy) is weakened by this factor in sigma for the final
 #: polish and the reported covariances: the solve first runs with the prior at full strength (it keeps
@@ -113,6 +118,13 @@ class CalibrationOptions:
         formulation: ``bundle`` | ``two_way``.
         pixel_sigma: corner noise, pixels (1 sigma per axis); None estimates it from the residuals
             (a-posteriori variance factor) for the reported covariances.
+        corner_noise: with ``pixel_sigma=None``, ``per-image`` (default) weights each image's corners
+            by its own noise, measured before the solve from per-image target poses (the noise floor,
+            shrunk towards its camera's; :func:`dcc_fg.noise_floor.relative_image_noise`): cameras of
+            different resolution or blur, and images at different distance, detect corners with
+            different noise, and one shared sigma overstates some images and understates others, in
+            the estimate's weights and in its covariance. ``shared``: one sigma for all. A given
+            ``pixel_sigma`` is used for all images.
         robust: None, ``huber`` or ``cauchy``; robust_k: its threshold in pixels.
         max_iterations: Levenberg-Marquardt iterations (see :func:`dcc_fg.calibration_graph.lm_params`).
         compute_covariance: compute Marginals, standard deviations and T_ds covariances.
@@ -127,6 +139,7 @@ class CalibrationOptions:
     mode: str = "encoderless"
     formulation: str = "bundle"
     pixel_sigma: float | None = None
+    corner_noise: str = "per-image"
     robust: str | None = None
     robust_k: float = 2.0
     max_iterations: int = 500
@@ -139,6 +152,8 @@ class CalibrationOptions:
             raise ValueError(f"nominal '{self.nominal}' is not one of {', '.join(NOMINALS)}")
         if self.mode not in MODES:
             raise ValueError(f"mode '{self.mode}' is not one of {', '.join(MODES)}")
+        if self.corner_noise not in CORNER_NOISE:
+            raise ValueError(f"corner_noise '{self.corner_noise}' is not one of {', '.join(CORNER_NOISE)}")
         if self.formulation not in FORMULATIONS:
             raise ValueError(f"formulation '{self.formulation}' is not one of {', '.join(FORMULATIONS)}")
         if self.pixel_sigma is not None and not (np.isfinite(self.pixel_sigma) and self.pixel_sigma > 0):
@@ -304,6 +319,11 @@ def initial_problem(
     fixed = gauge_fixed_kin(L, opt.mode)
     offsets = gauge_fixed_joint_offsets(L, opt.mode)
     estimate_theta = opt.mode != "encoders" and L > 0
+    image_scale = None
+    if opt.pixel_sigma is None and opt.corner_noise == "per-image":
+        hint = "check the camera intrinsics (--camchain); or whiten all images alike (corner_noise shared)"
+        with stage("noise floor", hint=hint):
+            image_scale = relative_image_noise(noise_floor(data, T_st0, T_dt0))
     T_ds_pnp = T_dt0 @ np.linalg.inv(T_st0)
     if opt.mode == "encoderless" and L > 0:
         with stage("joint-motion check"):
@@ -341,6 +361,7 @@ def initial_problem(
         kin_start=kin_start,
         fixed=fixed,
         offsets=offsets,
+        image_scale=image_scale,
     )
 
 
@@ -419,7 +440,7 @@ def variance_factor_of(
     )
     n_unknowns -= len(problem.offsets) + n_held
     dof = max(n_obs - n_unknowns, 1)
-    whitened_ss = sum(float(np.sum(r * r)) for r in res_s + res_d) / problem.sigma**2
+    whitened_ss = whitened_sum_of_squares(res_s, res_d, problem.image_sigma)
     return 1.0 if sigma_given else whitened_ss / dof
 
 
@@ -591,9 +612,33 @@ def calibrate(
         "max_iterations": int(opt.max_iterations),
         "next_decrease": float(solved.next_decrease),
         "sigma": float(problem.sigma),
+        "image_sigma": problem.image_sigma.tolist(),
     }
     cal.statistics = summary_statistics(out)
     return out
+
+
+def image_sigma_of(res: CalibrationResult) -> FloatArray:
+    """(K, 2) whitening sigmas of the solve per image ``[static, dynamic]``, px."""
+    solver = res.extra.get("solver", {})
+    if "image_sigma" in solver:
+        return np.asarray(solver["image_sigma"], float).reshape(-1, 2)
+    return np.full((len(res.residuals_static), 2), float(solver.get("sigma", 1.0)))
+
+
+def whitened_sum_of_squares(res_s: list[FloatArray], res_d: list[FloatArray], image_sigma: FloatArray) -> float:
+    """Sum of the squared pixel residuals (per image (N, 2), px) whitened by each image's sigma."""
+    ss = sum(float(np.sum(r * r)) / float(s) ** 2 for r, s in zip(res_s, image_sigma[:, 0], strict=True))
+    return ss + sum(float(np.sum(r * r)) / float(s) ** 2 for r, s in zip(res_d, image_sigma[:, 1], strict=True))
+
+
+def corner_sigma(res: CalibrationResult) -> dict[str, float]:
+    """A-posteriori corner noise of each camera, px (1 sigma per axis, RMS over its images): the
+    whitening sigmas of the solve times the square root of the variance factor (the given sigma when
+    ``pixel_sigma`` is set)."""
+    s = image_sigma_of(res)
+    f = float(np.sqrt(res.variance_factor))
+    return {"static": float(np.sqrt(np.mean(s[:, 0] ** 2))) * f, "dynamic": float(np.sqrt(np.mean(s[:, 1] ** 2))) * f}
 
 
 def summary_statistics(res: CalibrationResult) -> dict[str, Any]:
@@ -609,6 +654,7 @@ def summary_statistics(res: CalibrationResult) -> dict[str, Any]:
         "final_error": float(res.final_error),
         "solve_time_s": float(res.solve_time_s),
         "variance_factor": float(res.variance_factor),
+        "corner_sigma_px": corner_sigma(res),
         "null_space_dim": int(res.null_space_dim),
         "gauge_directions_fixed": int(res.n_gauge_fixed),
         "covariance": res.extra.get("covariance", "ok"),

@@ -99,6 +99,8 @@ class CalibrationProblem:
         n_joints: L.
         mode / formulation: as in :class:`dcc_fg.calibrate.CalibrationOptions`.
         sigma: pixel sigma that whitens the residuals (1 when it is estimated afterwards).
+        image_scale: (K, 2) factors on ``sigma`` per image ``[static, dynamic]`` (the relative corner
+            noise of each image, :func:`dcc_fg.noise_floor.relative_image_noise`); None: 1 for all.
         robust: per-corner robust loss on the whitened residuals, or None.
         meas: per snapshot, the corners matched to target points.
         T_st0 / T_dt0: (K, 4, 4) PnP target poses in the static / dynamic camera.
@@ -123,6 +125,13 @@ class CalibrationProblem:
     kin_start: FloatArray
     fixed: NDArray[np.bool_]
     offsets: list[int]
+    image_scale: FloatArray | None = None
+
+    @property
+    def image_sigma(self) -> FloatArray:
+        """(K, 2) pixel sigmas that whiten each image's residuals, ``[static, dynamic]``."""
+        scale = self.image_scale if self.image_scale is not None else np.ones((len(self.meas), 2))
+        return self.sigma * np.asarray(scale, float)
 
     @property
     def cams(self) -> tuple[CameraModel, CameraModel]:
@@ -168,7 +177,8 @@ def build_graph(problem: CalibrationProblem) -> tuple[gtsam.NonlinearFactorGraph
     """The factor graph (one factor per snapshot, plus the mean priors of the gauge) and its initial values."""
     graph = gtsam.NonlinearFactorGraph()
     values = gtsam.Values()
-    kin_key, layout, cams, sigma = problem.kin_key, problem.layout, problem.cams, problem.sigma
+    kin_key, layout, cams = problem.kin_key, problem.layout, problem.cams
+    image_sigma = problem.image_sigma
     if kin_key is not None:
         values.insert(kin_key, problem.kin_start[~problem.fixed])
     for i, m in enumerate(problem.meas):
@@ -176,6 +186,7 @@ def build_graph(problem: CalibrationProblem) -> tuple[gtsam.NonlinearFactorGraph
         if th_key is not None:
             values.insert(th_key, problem.thetas0[i])
         th_const = problem.thetas0[i] if not problem.estimate_theta else None
+        sigma = (float(image_sigma[i, 0]), float(image_sigma[i, 1]))
         if problem.formulation == "bundle":
             values.insert(X(i), gtsam.Pose3(problem.T_st0[i]))
             graph.add(bundle_factor(layout, m, cams, sigma, X(i), kin_key, th_key, th_const, problem.robust))

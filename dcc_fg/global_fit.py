@@ -35,7 +35,13 @@ from numpy.typing import NDArray
 from scipy.stats import chi2
 
 from dcc_fg.auto_init import auto_initial_candidates
-from dcc_fg.calibrate import CalibrationOptions, CalibrationResult, calibrate
+from dcc_fg.calibrate import (
+    CalibrationOptions,
+    CalibrationResult,
+    calibrate,
+    image_sigma_of,
+    whitened_sum_of_squares,
+)
 from dcc_fg.data import CalibrationDataset
 from dcc_fg.model import GimbalCalibration
 from dcc_fg.util.errors import EstimatorError
@@ -58,10 +64,9 @@ class Start:
 
 def data_cost(result: CalibrationResult) -> float:
     """0.5 * sum of the whitened squared pixel residuals (no priors, no robust loss): GTSAM's error
-    of the data factors alone, in the units of ``final_error``."""
-    sigma = float(result.extra.get("solver", {}).get("sigma", 1.0))
-    ss = sum(float(np.sum(r * r)) for r in result.residuals_static + result.residuals_dynamic)
-    return 0.5 * ss / sigma**2
+    of the data factors alone, in the units of ``final_error`` (each image whitened by its sigma,
+    ``extra["solver"]["image_sigma"]``, measured before the solve: the same for every start)."""
+    return 0.5 * whitened_sum_of_squares(result.residuals_static, result.residuals_dynamic, image_sigma_of(result))
 
 
 def T_ds_differences(a: CalibrationResult, b: CalibrationResult) -> FloatArray:

@@ -144,18 +144,27 @@ class SnapshotMeasurements:
     z_dynamic: FloatArray
 
 
+def camera_sigmas(sigma: float | tuple[float, float]) -> tuple[float, float]:
+    """``(static, dynamic)`` pixel sigmas from one sigma for both cameras or a pair."""
+    if np.isscalar(sigma):
+        return float(sigma), float(sigma)  # type: ignore[arg-type]
+    s_static, s_dynamic = sigma  # type: ignore[misc]
+    return float(s_static), float(s_dynamic)
+
+
 def _finish(
     blocks: list[tuple[FloatArray, list[FloatArray]]],
-    sigma: float,
+    sigmas: tuple[float, ...],
     robust: RobustLoss | None,
     H: list[FloatArray] | None,
 ) -> FloatArray:
-    """Stack per-camera residual blocks (N, 2) + Jacobian blocks (N, 2, n_key), whiten, robustify."""
-    r = np.concatenate([b[0] for b in blocks], axis=0) / sigma
+    """Stack per-camera residual blocks (N, 2) + Jacobian blocks (N, 2, n_key), whiten each block by
+    its camera's sigma (``sigmas[b]`` for ``blocks[b]``, px), robustify."""
+    r = np.concatenate([b[0] / s for b, s in zip(blocks, sigmas, strict=True)], axis=0)
     if H is None:
         return (r if robust is None else robust.scale(r)[:, None] * r).reshape(-1)
     n_keys = len(blocks[0][1])
-    Js = [np.concatenate([b[1][k] for b in blocks], axis=0) / sigma for k in range(n_keys)]
+    Js = [np.concatenate([b[1][k] / s for b, s in zip(blocks, sigmas, strict=True)], axis=0) for k in range(n_keys)]
     if robust is not None:
         widths = [J.shape[2] for J in Js]
         J_all = np.concatenate(Js, axis=2)
@@ -259,7 +268,7 @@ def bundle_factor(
     layout: KinLayout,
     meas: SnapshotMeasurements,
     cams: tuple[CameraModel, CameraModel],
-    sigma: float,
+    sigma: float | tuple[float, float],
     pose_key: int,
     kin_key: int | None,
     theta_key: int | None,
@@ -269,10 +278,12 @@ def bundle_factor(
     """Maximum-likelihood factor of one snapshot on keys ``[kin?, theta?, T_st]``.
 
     ``kin_key=None`` holds the kinematics at ``layout.full`` (validation); ``theta_key=None``
-    holds the joint angles at ``theta_const`` (encoder readings).
+    holds the joint angles at ``theta_const`` (encoder readings). ``sigma``: pixel sigma of both
+    cameras, or ``(static, dynamic)``.
     """
     if theta_key is None and theta_const is None:
         raise ValueError("either theta_key or theta_const is needed")
+    sigmas = camera_sigmas(sigma)  # the blocks of bundle_residuals: static, dynamic
     keep = [kin_key is not None, theta_key is not None, True]
     keys = [k for k, use in zip((kin_key, theta_key, pose_key), keep, strict=True) if use]
 
@@ -282,8 +293,8 @@ def bundle_factor(
         T_st = values.atPose3(pose_key).matrix()
         blocks = bundle_residuals(layout, kin_free, theta, T_st, meas, cams, H is not None)
         if H is None:
-            return _finish(blocks, sigma, robust, None)
-        return _finish(_select(blocks, keep), sigma, robust, H)
+            return _finish(blocks, sigmas, robust, None)
+        return _finish(_select(blocks, keep), sigmas, robust, H)
 
     n_rows = 2 * (meas.z_static.shape[0] + meas.z_dynamic.shape[0])
     return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(n_rows), keys, error)
@@ -296,17 +307,20 @@ def two_way_factor(
     P_d: FloatArray,
     z_s: FloatArray,
     cams: tuple[CameraModel, CameraModel],
-    sigma: float,
+    sigma: float | tuple[float, float],
     kin_key: int | None,
     theta_key: int | None,
     theta_const: FloatArray | None = None,
     robust: RobustLoss | None = None,
 ) -> gtsam.CustomFactor:
-    """The paper's two-way reprojection factor (eqs. 1, 2, 6) of one snapshot on keys ``[kin?, theta?]``."""
+    """The paper's two-way reprojection factor (eqs. 1, 2, 6) of one snapshot on keys ``[kin?, theta?]``;
+    ``sigma``: pixel sigma of both cameras, or ``(static, dynamic)``."""
     if kin_key is None and theta_key is None:
         raise ValueError("a two-way factor needs at least one variable")
     if theta_key is None and theta_const is None:
         raise ValueError("either theta_key or theta_const is needed")
+    s_static, s_dynamic = camera_sigmas(sigma)
+    sigmas = (s_dynamic, s_static)  # the blocks of two_way_residuals: dynamic image, then static image
     keep = [kin_key is not None, theta_key is not None]
     keys = [k for k, use in zip((kin_key, theta_key), keep, strict=True) if use]
 
@@ -315,8 +329,8 @@ def two_way_factor(
         theta = values.atVector(theta_key) if theta_key is not None else theta_const
         blocks = two_way_residuals(layout, kin_free, theta, P_s, z_d, P_d, z_s, cams, H is not None)
         if H is None:
-            return _finish(blocks, sigma, robust, None)
-        return _finish(_select(blocks, keep), sigma, robust, H)
+            return _finish(blocks, sigmas, robust, None)
+        return _finish(_select(blocks, keep), sigmas, robust, H)
 
     n_rows = 2 * (z_d.shape[0] + z_s.shape[0])
     return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(n_rows), keys, error)

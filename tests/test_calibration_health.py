@@ -10,14 +10,9 @@ import numpy as np
 import pytest
 
 from dcc_fg.calibrate import CalibrationOptions
-from dcc_fg.calibration_health import (
-    circular_span,
-    noise_floor,
-    pairing_stamp_check,
-    pose_residual_jacobian,
-    refine_poses,
-)
+from dcc_fg.calibration_health import circular_span, pairing_stamp_check
 from dcc_fg.io.pairing import Pairing
+from dcc_fg.noise_floor import noise_floor, pose_residual_jacobian, refine_poses
 from dcc_fg.sim.calibration_scene import SceneConfig, default_cameras, simulate_calibration
 
 

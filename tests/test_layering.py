@@ -32,6 +32,7 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
         (
             "dcc_fg.calibrate",
             "dcc_fg.calibration_health",
+            "dcc_fg.noise_floor",
             "dcc_fg.calibration_graph",
             "dcc_fg.cluster_calibration",
             "dcc_fg.cluster_init",

@@ -555,6 +555,9 @@ def add_solver_flags(c: argparse.ArgumentParser) -> None:
         help="maximum-likelihood bundle (default) or the paper's two-way error")  # fmt: skip
     opt(c, "--pixel-sigma", "solver.pixel_sigma", type=float,
         help="corner noise in pixels (1 sigma); default: estimated from the residuals")  # fmt: skip
+    opt(c, "--corner-noise", "solver.corner_noise", choices=["per-image", "shared"], help="without --pixel-sigma: "
+        "per-image (default) weights each image's corners by its own noise, measured from per-image target poses "
+        "before the solve (cameras and views detect corners with different noise); shared: one sigma")  # fmt: skip
     opt(c, "--robust", "solver.robust", choices=["huber", "cauchy"],
         help="per-corner robust loss (default: none, plain least squares)")  # fmt: skip
     opt(c, "--robust-k", "solver.robust_k", type=float, help="robust loss threshold in pixels (default 2)")

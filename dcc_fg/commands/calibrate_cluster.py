@@ -51,7 +51,7 @@ import yaml
 from numpy.typing import NDArray
 from scipy import stats
 
-from dcc_fg.calibration_health import FULL_TURN, RMS_RATIO_LIMIT, circular_span, refine_poses
+from dcc_fg.calibration_health import FULL_TURN, RMS_RATIO_LIMIT, circular_span
 from dcc_fg.cluster import CAMERA_NAME, CHAIN_NAME_RULE, TAU_NAMES, CameraCluster, ChainSpec, valid_chain_name
 from dcc_fg.cluster_calibration import ClusterCalibrationResult, ClusterOptions, calibrate_cluster
 from dcc_fg.cluster_data import ClusterDataset, read_cluster_detections
@@ -65,6 +65,7 @@ from dcc_fg.io.folders import IMAGE_SUFFIXES, list_timestamped
 from dcc_fg.io.output_set import OutputSet
 from dcc_fg.io.outputs import plain, write_text_atomic
 from dcc_fg.model import GimbalCalibration, load_calibration
+from dcc_fg.noise_floor import refine_poses
 from dcc_fg.targets import TargetGeometry, load_target
 from dcc_fg.util.config import apply_overrides, load_yaml_config
 from dcc_fg.util.errors import stage

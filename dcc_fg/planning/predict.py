@@ -52,7 +52,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from dcc_fg.calibrate import CalibrationResult
+from dcc_fg.calibrate import CalibrationResult, image_sigma_of
 from dcc_fg.calibration_graph import gauge_reference_snapshots, snapshot_measurements
 from dcc_fg.data import CalibrationDataset
 from dcc_fg.io.camchain import camera_from_dict, camera_to_dict
@@ -489,6 +489,10 @@ def kinematics_information(result: CalibrationResult, data: CalibrationDataset) 
     kin_free = kin[free]
     cams = (data.static_camera, data.dynamic_camera)
     sigma = measured_pixel_sigma(result)
+    if result.options.pixel_sigma is None:  # each image whitened as the calibration did, [static, dynamic]
+        image_sigma = image_sigma_of(result) * np.sqrt(max(result.variance_factor, 1e-300))
+    else:
+        image_sigma = np.full((len(data.snapshots), 2), float(result.options.pixel_sigma))
     nf = int(free.sum())
     estimate_theta = mode == "encoderless"
     K = len(data.snapshots)
@@ -501,6 +505,7 @@ def kinematics_information(result: CalibrationResult, data: CalibrationDataset) 
         theta = result.joint_angles[i]
         if result.options.formulation == "bundle":
             blocks = bundle_residuals(layout, kin_free, theta, result.T_st[i], meas, cams, True)
+            block_sigma = image_sigma[i]  # blocks: static, dynamic image
             Jp = np.concatenate([b[1][2].reshape(-1, 6) for b in blocks])
         else:
             T_st0 = result.extra.get("pnp_T_st")
@@ -510,14 +515,17 @@ def kinematics_information(result: CalibrationResult, data: CalibrationDataset) 
             P_s = meas.p_t_dynamic @ T_st0[i][:3, :3].T + T_st0[i][:3, 3]
             P_d = meas.p_t_static @ T_dt0[i][:3, :3].T + T_dt0[i][:3, 3]
             blocks = two_way_residuals(layout, kin_free, theta, P_s, meas.z_dynamic, P_d, meas.z_static, cams, True)
+            block_sigma = image_sigma[i, ::-1]  # blocks: dynamic, static image
             Jp = np.zeros((sum(b[0].size for b in blocks), 0))
-        Jk = np.concatenate([b[1][0].reshape(-1, nf) for b in blocks]) / sigma
-        Jt = np.concatenate([b[1][1].reshape(-1, L) for b in blocks]) / sigma
-        Jk = _project_out(Jk, Jp / sigma)
+        row_sigma = np.concatenate([np.full(b[0].size, s) for b, s in zip(blocks, block_sigma, strict=True)])[:, None]
+        Jk = np.concatenate([b[1][0].reshape(-1, nf) for b in blocks]) / row_sigma
+        Jt = np.concatenate([b[1][1].reshape(-1, L) for b in blocks]) / row_sigma
+        Jp = Jp / row_sigma
+        Jk = _project_out(Jk, Jp)
         if not estimate_theta:
             S += Jk.T @ Jk
             continue
-        Jt = _project_out(Jt, Jp / sigma)
+        Jt = _project_out(Jt, Jp)
         S += _project_out(Jk, Jt).T @ _project_out(Jk, Jt)
         if i in ref:
             D = Jt.T @ Jt

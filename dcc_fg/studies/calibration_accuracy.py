@@ -139,12 +139,15 @@ def cramer_rao_bound(
     truth: GimbalCalibration,
     thetas_true: FloatArray,
     T_st_true: FloatArray,
-    pixel_sigma: float,
+    pixel_sigma: float | tuple[float, float],
 ) -> CramerRaoBound:
     """CRB of T_ds(theta_i) and offset-free joint angles for encoderless calibration (bundle model).
 
+    ``pixel_sigma``: the corner noise (px, 1 sigma per axis), one for both cameras or
+    ``(static, dynamic)`` when the cameras' detections differ (the bound of the detector's actual noise).
     Parameter order: [kin (12+3L), theta_1..theta_K (L each), xi_1..xi_K (6 each, Pose3 of T_st)].
     """
+    sigmas = (pixel_sigma, pixel_sigma) if np.isscalar(pixel_sigma) else tuple(pixel_sigma)
     L = truth.n_joints
     K = len(data.snapshots)
     nk = chain.n_kin(L)
@@ -156,15 +159,13 @@ def cramer_rao_bound(
         blocks = bundle_residuals(
             layout, truth.kin, thetas_true[i], T_st_true[i], snapshot_measurements(data, s), cams, True
         )
-        J = np.zeros((0, n))
-        for _, (Jk, Jt, Jp) in blocks:
+        for (_, (Jk, Jt, Jp)), sigma in zip(blocks, sigmas, strict=True):  # static, then dynamic camera
             rows = Jk.shape[0] * 2
             Jb = np.zeros((rows, n))
             Jb[:, :nk] = Jk.reshape(rows, -1)
             Jb[:, nk + i * L : nk + (i + 1) * L] = Jt.reshape(rows, -1)
             Jb[:, nk + K * L + 6 * i : nk + K * L + 6 * (i + 1)] = Jp.reshape(rows, -1)
-            J = np.vstack([J, Jb])
-        H += J.T @ J / pixel_sigma**2
+            H += Jb.T @ Jb / float(sigma) ** 2
     # Jacobi scaling, then a pseudo-inverse that drops the exact null space
     d = np.sqrt(np.diag(H))
     Hn = H / np.outer(d, d)

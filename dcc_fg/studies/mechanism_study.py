@@ -31,8 +31,9 @@ Criteria (issue 14), per L over the family:
   members whose geometry is observable (finite, positive bound on T_ds; directions held by a weak
   prior, ``held_by_prior``, do not exclude a member: T_ds stays estimable) that reached the global
   minimum;
-  the CRB uses the detector's corner noise measured against the true projections
-  (``sigma_detector_px``); the bound with the truth start's a-posteriori sigma is reported too;
+  the CRB uses the detector's corner noise measured against the true projections, per camera
+  (``sigma_detector_camera_px``: the cameras differ in resolution and blur, so their detections
+  differ in noise, by up to ~1.5x); the bound with the truth start's a-posteriori sigmas is reported too;
 * *NEES*: each member's mean NEES over its snapshots (6 dof) is treated as ONE chi-square(6) draw
   (its snapshots share the kinematics, so their errors are not independent); the mean over M
   members then has the 95 % interval ``chi2.ppf([0.025, 0.975], 6 M) / M`` (first-order check).
@@ -54,7 +55,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.stats import chi2
 
-from dcc_fg.calibrate import CalibrationOptions, CalibrationResult, calibrate
+from dcc_fg.calibrate import CalibrationOptions, CalibrationResult, calibrate, corner_sigma
 from dcc_fg.calibration_health import calibration_health
 from dcc_fg.data import CalibrationDataset
 from dcc_fg.global_fit import T_ds_differences, calibrate_global, data_cost
@@ -169,16 +170,20 @@ class MechanismRecord:
     observable: bool = False  # the bound on T_ds is finite and positive (T_ds estimable from the data)
     rotation_rms: float = math.nan
     translation_rms: float = math.nan
-    sigma_detector_px: float = math.nan  # corner noise against the true projections (RMS per axis)
-    sigma_posterior_px: float = math.nan  # a-posteriori sigma of the truth start
-    # (SS at the true parameters - SS at the truth start's minimum) / sigma_posterior^2: ~ chi2(truth_excess_dof)
+    sigma_detector_px: float = math.nan  # corner noise against the true projections (RMS per axis, both cameras)
+    sigma_detector_camera_px: Any = None  # [static, dynamic]: the same per camera (the bound uses these)
+    sigma_posterior_px: float = math.nan  # a-posteriori sigma of the truth start (both cameras pooled)
+    # (SS at the true parameters - SS at the truth start's minimum), whitened by each camera's a-posteriori
+    # sigma: ~ chi2(truth_excess_dof)
     # when the detected corners are unbiased; far beyond it, the data disagree with the ground truth
     # (renderer / detector bias), which no estimator can fix
     truth_excess_chi2: float = math.nan
     truth_excess_dof: int = 0
-    crb_rotation_rms: float = math.nan  # with sigma_detector_px
+    crb_rotation_rms: float = math.nan  # with sigma_detector_camera_px
     crb_translation_rms: float = math.nan
-    crb_posterior_rotation_rms: float = math.nan  # with sigma_posterior_px
+    crb_pooled_rotation_rms: float = math.nan  # with sigma_detector_px for both cameras (before per-camera bounds)
+    crb_pooled_translation_rms: float = math.nan
+    crb_posterior_rotation_rms: float = math.nan  # with the truth start's a-posteriori sigma of each camera
     crb_posterior_translation_rms: float = math.nan
     nees_mean: float = math.nan  # mean over snapshots of the per-snapshot T_ds NEES
     nees_dof: int = T_DS_DOF
@@ -233,19 +238,20 @@ def with_joints(data: CalibrationDataset, thetas: FloatArray) -> CalibrationData
 
 def truth_residuals(
     data: CalibrationDataset, truth: GimbalCalibration, thetas: FloatArray, T_st: FloatArray
-) -> tuple[float, int]:
-    """Sum of squares (px^2) and number of values (2 per corner) of the detected corners minus their
-    true projections in both cameras (``T_st``: true target -> static camera poses, ``T_ds(thetas)``
-    the true static -> dynamic transforms)."""
-    sq, n = 0.0, 0
+) -> tuple[FloatArray, NDArray[np.int64]]:
+    """Per camera ``[static, dynamic]``: sum of squares (px^2) and number of values (2 per corner) of
+    the detected corners minus their true projections (``T_st``: true target -> static camera poses,
+    ``T_ds(thetas)`` the true static -> dynamic transforms)."""
+    sq, n = np.zeros(2), np.zeros(2, dtype=np.int64)
     for s, th, T in zip(data.snapshots, thetas, T_st, strict=True):
-        for obs, cam, T_ct in ((s.static, data.static_camera, T), (s.dynamic, data.dynamic_camera, truth.T_ds(th) @ T)):
+        pairs = ((s.static, data.static_camera, T), (s.dynamic, data.dynamic_camera, truth.T_ds(th) @ T))
+        for c, (obs, cam, T_ct) in enumerate(pairs):
             if len(obs.ids) == 0:
                 continue
             p = data.target_points[obs.ids] @ T_ct[:3, :3].T + T_ct[:3, 3]
             uv, _ = cam.project(p, jacobian=False)
-            sq += float(np.sum((obs.pixels - uv) ** 2))
-            n += 2 * len(obs.ids)
+            sq[c] += float(np.sum((obs.pixels - uv) ** 2))
+            n[c] += 2 * len(obs.ids)
     return sq, n
 
 
@@ -355,21 +361,32 @@ def _study(rec: MechanismRecord, work_dir: Path, opt: CalibrationOptions) -> Non
         if rec.auto.healthy is False:
             causes.append("unhealthy: " + " | ".join(rec.auto.health_failures))
     ss_truth, n_values = truth_residuals(data, truth, thetas_true, T_st_true)
-    rec.sigma_detector_px = math.sqrt(ss_truth / n_values) if n_values else math.nan
+    rec.sigma_detector_px = math.sqrt(ss_truth.sum() / n_values.sum()) if n_values.sum() else math.nan
+    sigma_cams = np.sqrt(ss_truth / np.maximum(n_values, 1))
+    rec.sigma_detector_camera_px = [float(x) for x in sigma_cams]
+    posterior = None
     if res_truth is not None:
-        rec.sigma_posterior_px = float(res_truth.extra["solver"]["sigma"]) * math.sqrt(res_truth.variance_factor)
-        ss_min = sum(float(np.sum(r * r)) for r in res_truth.residuals_static + res_truth.residuals_dynamic)
-        rec.truth_excess_chi2 = (ss_truth - ss_min) / rec.sigma_posterior_px**2
+        sig = corner_sigma(res_truth)
+        posterior = (sig["static"], sig["dynamic"])
+        rec.sigma_posterior_px = math.sqrt(
+            (posterior[0] ** 2 * n_values[0] + posterior[1] ** 2 * n_values[1]) / max(n_values.sum(), 1)
+        )
+        per_camera = (res_truth.residuals_static, res_truth.residuals_dynamic)
+        ss_min = [sum(float(np.sum(r * r)) for r in rs) for rs in per_camera]
+        rec.truth_excess_chi2 = sum((ss_truth[c] - ss_min[c]) / posterior[c] ** 2 for c in range(2))
         K = rec.n_snapshots
         rec.truth_excess_dof = 12 + 3 * L - int(res_truth.n_gauge_fixed) + K * L + 6 * K
-    # the bound scales with sigma^2: one information matrix (sigma 1 px), two noise levels
-    if np.isfinite(rec.sigma_detector_px) or np.isfinite(rec.sigma_posterior_px):
-        crb = cramer_rao_bound(data, truth, thetas_true, T_st_true, 1.0)
-        rec.crb_rotation_rms = crb.rotation_rms * rec.sigma_detector_px
-        rec.crb_translation_rms = crb.translation_rms * rec.sigma_detector_px
-        rec.crb_posterior_rotation_rms = crb.rotation_rms * rec.sigma_posterior_px
-        rec.crb_posterior_translation_rms = crb.translation_rms * rec.sigma_posterior_px
+    # the bound of each camera's own corner noise (the detector's noise differs between cameras)
+    if np.all(np.isfinite(sigma_cams)) and np.all(sigma_cams > 0):
+        crb = cramer_rao_bound(data, truth, thetas_true, T_st_true, (float(sigma_cams[0]), float(sigma_cams[1])))
+        rec.crb_rotation_rms, rec.crb_translation_rms = crb.rotation_rms, crb.translation_rms
+        pooled = cramer_rao_bound(data, truth, thetas_true, T_st_true, rec.sigma_detector_px)
+        rec.crb_pooled_rotation_rms, rec.crb_pooled_translation_rms = pooled.rotation_rms, pooled.translation_rms
         rec.observable = bool(np.all(np.isfinite(crb.T_ds)) and crb.rotation_rms > 0 and crb.translation_rms > 0)
+    if posterior is not None and min(posterior) > 0:
+        crb_post = cramer_rao_bound(data, truth, thetas_true, T_st_true, posterior)
+        rec.crb_posterior_rotation_rms = crb_post.rotation_rms
+        rec.crb_posterior_translation_rms = crb_post.translation_rms
 
     if res_auto is not None:
         err = T_ds_errors(truth, thetas_true, res_auto.calibration, res_auto.joint_angles)
