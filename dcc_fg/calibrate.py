@@ -623,7 +623,7 @@ def image_sigma_of(res: CalibrationResult) -> FloatArray:
     solver = res.extra.get("solver", {})
     if "image_sigma" in solver:
         return np.asarray(solver["image_sigma"], float).reshape(-1, 2)
-    return np.full((len(res.residuals_static), 2), float(solver.get("sigma", 1.0)))
+    return np.full((len(res.timestamps_ns), 2), float(solver.get("sigma", 1.0)))  # one sigma for all
 
 
 def whitened_sum_of_squares(res_s: list[FloatArray], res_d: list[FloatArray], image_sigma: FloatArray) -> float:

@@ -133,3 +133,34 @@ def test_robust_loss_is_exact_cost() -> None:
 def test_kin_names_cover_vector() -> None:
     for L in range(4):
         assert len(chain.kin_names(L)) == chain.n_kin(L) == chain.kin_is_angle(L).size
+
+
+@pytest.mark.parametrize("formulation", ["bundle", "two_way"])
+def test_sigma_pair_whitens_each_camera_by_its_own_sigma(formulation: str) -> None:
+    """``sigma=(static, dynamic)``: the static image's rows divided by the first, the dynamic image's by
+    the second, in both formulations (the two-way factor's rows start with the dynamic image), and the
+    Jacobians still match numerical differentiation."""
+    sim, layout, m, cams, values, nf = setup(2, None)
+    ns, nd = 2 * m.z_static.shape[0], 2 * m.z_dynamic.shape[0]
+    if formulation == "bundle":
+
+        def make(sigma):  # type: ignore[no-untyped-def]
+            return bundle_factor(layout, m, cams, sigma, X(0), KIN_KEY, J(0), None)
+
+        keys, dims, rows = [KIN_KEY, J(0), X(0)], [(KIN_KEY, nf), (J(0), 2), (X(0), 6)], (slice(0, ns), slice(ns, None))
+    else:
+        T_st = pnp_pose(cams[0], m.p_t_static, m.z_static)
+        T_dt = pnp_pose(cams[1], m.p_t_dynamic, m.z_dynamic)
+        P_s = m.p_t_dynamic @ T_st[:3, :3].T + T_st[:3, 3]
+        P_d = m.p_t_static @ T_dt[:3, :3].T + T_dt[:3, 3]
+
+        def make(sigma):  # type: ignore[no-untyped-def]
+            return two_way_factor(layout, P_s, m.z_dynamic, P_d, m.z_static, cams, sigma, KIN_KEY, J(0))
+
+        keys, dims, rows = [KIN_KEY, J(0)], [(KIN_KEY, nf), (J(0), 2)], (slice(nd, None), slice(0, nd))
+    unit = make(1.0).unwhitenedError(values)
+    pair = make((0.3, 0.7)).unwhitenedError(values)
+    np.testing.assert_allclose(pair[rows[0]], unit[rows[0]] / 0.3, rtol=1e-12)
+    np.testing.assert_allclose(pair[rows[1]], unit[rows[1]] / 0.7, rtol=1e-12)
+    f = make((0.3, 0.7))
+    assert_blocks_match(analytic_jacobian(f, values, keys), numeric_jacobian(f, values, dims), dims)
