@@ -127,7 +127,8 @@ def report(records: list[MechanismRecord], summaries: list[FamilySummary]) -> No
     print(
         f"issue 14 criteria: global minimum = auto cost <= truth-start cost * (1 + {COST_REL_TOL:g}) for >= 49/50; "
         f"accuracy = pooled RMS T_ds error / pooled RMS CRB <= {CRB_RATIO_MAX} (CRB with the detector's corner noise "
-        "measured against the true projections; members with an observable geometry that reached the global minimum); "
+        "of each camera measured against the true projections; members with an observable geometry that reached "
+        "the global minimum); "
         "NEES = mean over members of each member's mean per-snapshot NEES (6 dof; each member counted as ONE chi2(6) "
         "draw because its snapshots share the kinematics) inside chi2.ppf([0.025, 0.975], 6 M) / M."
     )
