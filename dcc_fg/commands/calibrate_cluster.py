@@ -97,6 +97,7 @@ FLAG_OF = {
     "solver.nominal": "--nominal",
     "solver.mode": "--mode",
     "solver.formulation": "--formulation",
+    "solver.corner_noise": "--corner-noise",
     "reader.sync": "--sync",
     "reader.time_offsets": "--time-offsets",
     "reader.fix_time_offsets": "--fix-time-offsets",
