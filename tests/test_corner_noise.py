@@ -18,6 +18,7 @@ from test_cluster_calibration import euroc_pair
 from test_real_stereo import euroc_sensor
 
 from dcc_fg.calibrate import CalibrationOptions, calibrate, corner_sigma
+from dcc_fg.cli import main
 from dcc_fg.data import CalibrationDataset
 from dcc_fg.model import GimbalCalibration
 from dcc_fg.noise_floor import noise_floor, relative_image_noise
@@ -123,3 +124,10 @@ def test_euroc_stereo_per_image_weights_agree_with_euroc_extrinsics(tmp_path) ->
     # measured: 1.61 mm against 6.56 mm. Not within our 1-sigma (0.32 mm) of EuRoC's value: theirs is
     # another estimate (Kalibr, other images), with an uncertainty of its own that sensor.yaml does not give
     assert d_image < 0.5 * d_shared
+
+
+def test_cluster_calibration_refuses_corner_noise_by_name(tmp_path, capsys) -> None:  # type: ignore[no-untyped-def]
+    """The N-camera calibration whitens every image with one sigma: the option is refused, not ignored."""
+    rc = main(["calibrate", str(tmp_path), "--camchain", "c.yaml", "--mounts", "m.yaml", "--corner-noise", "shared"])
+    assert rc == 2
+    assert "--corner-noise: not available with an N-camera cluster" in capsys.readouterr().err
