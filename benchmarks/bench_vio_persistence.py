@@ -23,6 +23,7 @@ import argparse
 import json
 import sys
 import tempfile
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -50,6 +51,41 @@ def _metrics(r: dict[str, Any]) -> dict[str, float]:
     for j, x in enumerate(r["joint_rmse_rad"] or ()):
         out[f"joint_{j + 1}_rmse"] = x
     return out
+
+
+def add_flight_arguments(p: argparse.ArgumentParser) -> None:
+    """The flags of the flight family both VIO comparisons run: --seeds, --duration, --keep, --json."""
+    p.add_argument("--seeds", default="0-7", help="flight seeds, e.g. 0-7 or 0,2,5 (default 0-7)")
+    p.add_argument("--duration", type=float, default=60.0, help="flight duration, s (default 60)")
+    p.add_argument("--keep", help="write (and reuse) the flights in this folder (default: a temporary one)")
+    p.add_argument("--json", help="also write the runs and ratios to this JSON file")
+
+
+def flights(a: argparse.Namespace, moving: bool = True) -> Iterator[tuple[int, Any]]:
+    """(seed, flight) for every seed of ``a.seeds`` (:func:`bench_vio._flight`, gimbal moving or
+    locked), written under ``a.keep`` or a temporary folder removed afterwards."""
+    cfg = cluster_bench.flight_config(a.duration)
+    with tempfile.TemporaryDirectory() as tmp:
+        root = Path(a.keep or tmp)
+        for seed in parse_seeds(a.seeds):
+            folder = root / f"seed{seed}"
+            folder.mkdir(parents=True, exist_ok=True)
+            yield seed, bench_vio._flight(folder / ("moving" if moving else "locked"), cfg, seed, moving=moving)
+
+
+def pair_line(seed: int, first: dict[str, Any], second: dict[str, Any]) -> str:
+    """One line per flight: real-time factor, translation RMSE and (runs with joint angles) joint RMSEs,
+    first run -> second run."""
+    m0, m1 = _metrics(first), _metrics(second)
+    joints = "".join(
+        f"  joint {j} {m0[f'joint_{j}_rmse']:.2e} -> {m1[f'joint_{j}_rmse']:.2e}"
+        for j in (1, 2)
+        if f"joint_{j}_rmse" in m0 and f"joint_{j}_rmse" in m1
+    )
+    return (
+        f"seed {seed}: real-time factor {first['real_time_factor']:.3f} -> {second['real_time_factor']:.3f}  "
+        f"transl. {m0['translation_rmse']:.4f} -> {m1['translation_rmse']:.4f} %" + (joints + " rad" if joints else "")
+    )
 
 
 def summarize(pairs: list[tuple[dict[str, Any], dict[str, Any]]]) -> dict[str, Any]:
@@ -97,32 +133,15 @@ def report(pairs: list[tuple[dict[str, Any], dict[str, Any]]], label: str, json_
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--seeds", default="0-7", help="flight seeds, e.g. 0-7 or 0,2,5 (default 0-7)")
-    p.add_argument("--duration", type=float, default=60.0, help="flight duration, s (default 60)")
-    p.add_argument("--keep", help="write (and reuse) the flights in this folder (default: a temporary one)")
-    p.add_argument("--json", help="also write the runs and ratios to this JSON file")
+    add_flight_arguments(p)
     a = p.parse_args(argv)
-    seeds = parse_seeds(a.seeds)
-    cfg = cluster_bench.flight_config(a.duration)
     pairs = []
-    with tempfile.TemporaryDirectory() as tmp:
-        root = Path(a.keep or tmp)
-        for seed in seeds:
-            folder = root / f"seed{seed}"
-            folder.mkdir(parents=True, exist_ok=True)
-            fb = bench_vio._flight(folder / "moving", cfg, seed, moving=True)
-            previous = {"persistent": bench_vio.PREVIOUS_PERSISTENT, "lag": bench_vio.PREVIOUS_LAG}
-            ref = bench_vio.run_mode(fb, "dcc", True, **previous)  # type: ignore[arg-type]
-            fast = bench_vio.run_mode(fb, "dcc", True)
-            pairs.append((ref, fast))
-            m0, m1 = _metrics(ref), _metrics(fast)
-            print(
-                f"seed {seed}: real-time factor {ref['real_time_factor']:.3f} -> {fast['real_time_factor']:.3f}  "
-                f"transl. {m0['translation_rmse']:.4f} -> {m1['translation_rmse']:.4f} %  joint 1 "
-                f"{m0['joint_1_rmse']:.2e} -> {m1['joint_1_rmse']:.2e}  joint 2 {m0['joint_2_rmse']:.2e} -> "
-                f"{m1['joint_2_rmse']:.2e} rad",
-                flush=True,
-            )
+    for seed, fb in flights(a):
+        previous = {"persistent": bench_vio.PREVIOUS_PERSISTENT, "lag": bench_vio.PREVIOUS_LAG}
+        ref = bench_vio.run_mode(fb, "dcc", True, **previous)  # type: ignore[arg-type]
+        fast = bench_vio.run_mode(fb, "dcc", True)
+        pairs.append((ref, fast))
+        print(pair_line(seed, ref, fast), flush=True)
     label = (
         f"defaults ({pairs[-1][1]['persistent_landmarks']} persistent, {pairs[-1][1]['lag']:g} s) / "
         f"previous defaults ({bench_vio.PREVIOUS_PERSISTENT}, {bench_vio.PREVIOUS_LAG:g} s)"

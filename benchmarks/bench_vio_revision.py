@@ -27,13 +27,10 @@ import json
 import os
 import subprocess
 import sys
-import tempfile
 from pathlib import Path
 from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-import bench_vio  # noqa: E402
-import bench_vio_cluster as cluster_bench  # noqa: E402
 import bench_vio_persistence as persistence  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
@@ -65,40 +62,17 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--old", required=True, help="root of the other dcc-fg checkout (holds dcc_fg/)")
     p.add_argument("--mode", choices=("dcc", "scc"), default="dcc", help="VIO mode (default dcc)")
-    p.add_argument("--seeds", default="0-7", help="flight seeds, e.g. 0-7 or 0,2,5 (default 0-7)")
-    p.add_argument("--duration", type=float, default=60.0, help="flight duration, s (default 60)")
-    p.add_argument("--keep", help="write (and reuse) the flights in this folder (default: a temporary one)")
-    p.add_argument("--json", help="also write the runs and ratios to this JSON file")
+    persistence.add_flight_arguments(p)
     a = p.parse_args(argv)
     old = Path(a.old).resolve()
     if not (old / "dcc_fg" / "__init__.py").is_file():
         p.error(f"--old {a.old}: no dcc_fg package there (give the root of a dcc-fg checkout)")
-    seeds = persistence.parse_seeds(a.seeds)
-    cfg = cluster_bench.flight_config(a.duration)
     pairs = []
-    with tempfile.TemporaryDirectory() as tmp:
-        root = Path(a.keep or tmp)
-        for seed in seeds:
-            folder = root / f"seed{seed}"
-            folder.mkdir(parents=True, exist_ok=True)
-            moving = a.mode == "dcc"
-            fb = bench_vio._flight(folder / ("moving" if moving else "locked"), cfg, seed, moving=moving)
-            before = run_checkout(old, fb.bag.parent, a.mode)
-            after = run_checkout(THIS_CHECKOUT, fb.bag.parent, a.mode)
-            pairs.append((before, after))
-            joints = ""
-            if moving:
-                m0, m1 = persistence._metrics(before), persistence._metrics(after)
-                joints = (
-                    f"  joint 1 {m0['joint_1_rmse']:.2e} -> {m1['joint_1_rmse']:.2e}  joint 2 "
-                    f"{m0['joint_2_rmse']:.2e} -> {m1['joint_2_rmse']:.2e} rad"
-                )
-            print(
-                f"seed {seed}: real-time factor {before['real_time_factor']:.3f} -> {after['real_time_factor']:.3f}  "
-                f"transl. {before['normalized_translation_rmse_percent']:.4f} -> "
-                f"{after['normalized_translation_rmse_percent']:.4f} %" + joints,
-                flush=True,
-            )
+    for seed, fb in persistence.flights(a, moving=a.mode == "dcc"):
+        before = run_checkout(old, fb.bag.parent, a.mode)
+        after = run_checkout(THIS_CHECKOUT, fb.bag.parent, a.mode)
+        pairs.append((before, after))
+        print(persistence.pair_line(seed, before, after), flush=True)
     return persistence.report(pairs, f"this checkout / {old}", a.json)
 
 
