@@ -319,11 +319,12 @@ def initial_problem(
     fixed = gauge_fixed_kin(L, opt.mode)
     offsets = gauge_fixed_joint_offsets(L, opt.mode)
     estimate_theta = opt.mode != "encoders" and L > 0
-    image_scale = None
+    image_scale, floor = None, None
     if opt.pixel_sigma is None and opt.corner_noise == "per-image":
         hint = "check the camera intrinsics (--camchain); or whiten all images alike (corner_noise shared)"
         with stage("noise floor", hint=hint):
-            image_scale = relative_image_noise(noise_floor(data, T_st0, T_dt0))
+            floor = noise_floor(data, T_st0, T_dt0)
+            image_scale = relative_image_noise(floor)
     T_ds_pnp = T_dt0 @ np.linalg.inv(T_st0)
     if opt.mode == "encoderless" and L > 0:
         with stage("joint-motion check"):
@@ -362,6 +363,7 @@ def initial_problem(
         fixed=fixed,
         offsets=offsets,
         image_scale=image_scale,
+        floor=floor,
     )
 
 
@@ -608,6 +610,8 @@ def calibrate(
     # for the health checks (dcc_fg.calibration_health): the per-image PnP poses of both cameras and
     # the solver's stopping state
     out.extra["pnp_T_st"], out.extra["pnp_T_dt"] = problem.T_st0, problem.T_dt0
+    if problem.floor is not None:  # the noise floor of these PnP poses (the health checks reuse it)
+        out.extra["noise_floor"] = problem.floor
     out.extra["solver"] = {
         "max_iterations": int(opt.max_iterations),
         "next_decrease": float(solved.next_decrease),

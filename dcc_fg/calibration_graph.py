@@ -16,6 +16,7 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass, replace
 from functools import cached_property
+from typing import TYPE_CHECKING
 
 import gtsam
 import numpy as np
@@ -38,6 +39,9 @@ from factors.calibration import (
     two_way_residuals,
 )
 from factors.camera import CameraModel
+
+if TYPE_CHECKING:  # dcc_fg.noise_floor builds on this module
+    from dcc_fg.noise_floor import NoiseFloor
 
 FloatArray = NDArray[np.float64]
 KIN_KEY = KIN(0)
@@ -101,6 +105,7 @@ class CalibrationProblem:
         sigma: pixel sigma that whitens the residuals (1 when it is estimated afterwards).
         image_scale: (K, 2) factors on ``sigma`` per image ``[static, dynamic]`` (the relative corner
             noise of each image, :func:`dcc_fg.noise_floor.relative_image_noise`); None: 1 for all.
+        floor: the noise floor ``image_scale`` was taken from (None when one sigma whitens all).
         robust: per-corner robust loss on the whitened residuals, or None.
         meas: per snapshot, the corners matched to target points.
         T_st0 / T_dt0: (K, 4, 4) PnP target poses in the static / dynamic camera.
@@ -126,6 +131,7 @@ class CalibrationProblem:
     fixed: NDArray[np.bool_]
     offsets: list[int]
     image_scale: FloatArray | None = None
+    floor: NoiseFloor | None = None
 
     @property
     def image_sigma(self) -> FloatArray:

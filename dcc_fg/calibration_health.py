@@ -576,7 +576,9 @@ def calibration_health(
     when present). The report's subject is ``calibration`` or ``validation``."""
     report = HealthReport("validation" if result.options.mode == "validate" else "calibration")
     report.add(finite_check(result))
-    floor = noise_floor(data, result.extra.get("pnp_T_st"), result.extra.get("pnp_T_dt"))
+    floor = result.extra.get("noise_floor")  # computed by calibrate from the same PnP poses, if it weighted by it
+    if not isinstance(floor, NoiseFloor) or floor.ss.shape[0] != len(data.snapshots):
+        floor = noise_floor(data, result.extra.get("pnp_T_st"), result.extra.get("pnp_T_dt"))
     report.extend(residual_checks(result, floor))
     report.add(convergence_check(result, floor))
     report.extend(joint_angle_checks(result, data))
