@@ -489,10 +489,8 @@ def kinematics_information(result: CalibrationResult, data: CalibrationDataset) 
     kin_free = kin[free]
     cams = (data.static_camera, data.dynamic_camera)
     sigma = measured_pixel_sigma(result)
-    if result.options.pixel_sigma is None:  # each image whitened as the calibration did, [static, dynamic]
-        image_sigma = image_sigma_of(result) * np.sqrt(max(result.variance_factor, 1e-300))
-    else:
-        image_sigma = np.full((len(data.snapshots), 2), float(result.options.pixel_sigma))
+    # each image whitened as the calibration did, [static, dynamic] (a given pixel sigma: variance factor 1)
+    image_sigma = image_sigma_of(result) * np.sqrt(max(result.variance_factor, 1e-300))
     nf = int(free.sum())
     estimate_theta = mode == "encoderless"
     K = len(data.snapshots)

@@ -27,7 +27,7 @@ from dcc_fg.calibration_graph import snapshot_measurements
 from dcc_fg.data import CalibrationDataset
 from dcc_fg.model import GimbalCalibration
 from factors import chain
-from factors.calibration import KinLayout, bundle_residuals
+from factors.calibration import KinLayout, bundle_residuals, camera_sigmas
 
 FloatArray = NDArray[np.float64]
 # Relative eigenvalue below which a direction of the (Jacobi-scaled) information matrix counts as an
@@ -147,7 +147,7 @@ def cramer_rao_bound(
     ``(static, dynamic)`` when the cameras' detections differ (the bound of the detector's actual noise).
     Parameter order: [kin (12+3L), theta_1..theta_K (L each), xi_1..xi_K (6 each, Pose3 of T_st)].
     """
-    sigmas = (pixel_sigma, pixel_sigma) if np.isscalar(pixel_sigma) else tuple(pixel_sigma)
+    sigmas = camera_sigmas(pixel_sigma)
     L = truth.n_joints
     K = len(data.snapshots)
     nk = chain.n_kin(L)
