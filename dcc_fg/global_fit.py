@@ -15,12 +15,17 @@ and keeps the solution with the lowest *data* cost (pixel residuals only: the we
 comparison).
 
 Uniqueness. Another solution whose data cost is within the chi-square threshold of the best one,
-``2 (c_j - c_best) / s^2 < chi2_0.95(p)`` (``s^2`` the a-posteriori variance factor, ``p`` the
-number of kinematic parameters the data determine), fits the images as well. When its per-snapshot
-``T_ds`` differs from the best one by more than the reported uncertainty, the data do not decide
-between the two: the result carries ``extra["global"]["ambiguity"]`` (both solutions' ``T_ds``
-difference, rad and m) and every snapshot's reported ``T_ds`` covariance gets the outer product of
-that difference added, so the 1-sigma a user reads is never smaller than the ambiguity.
+``2 (c_j - c_best) / s^2 < chi2_0.95(p)`` (``s^2`` the a-posteriori variance factor), fits the images
+as well: it lies inside the likelihood-ratio confidence region of the kinematics. ``p``
+(:func:`determined_parameters`) is the number of free kinematic parameters less the directions the data
+leave exactly undetermined beyond the gauge; directions held by the weak prior because the data determine
+them only weakly count, since the data cost does change along them (on nearly intersecting 3-axis
+chains, solutions along those directions differ by 5-25 chi-square units). When such a solution's
+per-snapshot ``T_ds`` differs from the best one by more than the reported uncertainty, the data do not
+decide between the two: the result carries ``extra["global"]["ambiguity"]`` (the two solutions' ``T_ds``
+difference, rad and m, of the ambiguous solution farthest from the best one in the best one's reported
+uncertainty) and every snapshot's reported ``T_ds`` covariance gets the outer product of that difference
+added, so the 1-sigma a user reads is never smaller than the ambiguity.
 """
 
 from __future__ import annotations
@@ -108,20 +113,21 @@ def starts_of(
     return starts
 
 
-def _determined_parameters(result: CalibrationResult) -> int:
-    obs = result.calibration.observable
+def determined_parameters(result: CalibrationResult) -> int:
+    """Degrees of freedom of the likelihood-ratio test between two solutions: the free (not
+    gauge-fixed) kinematic parameters less the null-space directions at the solution beyond the gauge
+    (at least 1). Weakly determined directions (held by prior) count: the data cost changes along them."""
     fixed = result.calibration.gauge_fixed
-    if obs is None:
-        return 1
-    free = ~fixed if fixed is not None else np.ones_like(obs)
-    return max(int(np.sum(obs & free)), 1)
+    n_free = len(result.calibration.kin) - (int(np.sum(fixed)) if fixed is not None else 0)
+    extra_null = max(int(result.null_space_dim) - int(result.n_gauge_fixed), 0)
+    return max(n_free - extra_null, 1)
 
 
 def ambiguity_of(best: CalibrationResult, other: CalibrationResult) -> dict[str, Any] | None:
     """The ambiguity between two solutions (module docstring), or None when ``other`` fits clearly
     worse or gives the same ``T_ds`` within the best one's reported uncertainty."""
     vf = max(float(best.variance_factor), 1e-12)
-    p = _determined_parameters(best)
+    p = determined_parameters(best)
     delta = 2.0 * (data_cost(other) - data_cost(best)) / vf
     threshold = float(chi2.ppf(AMBIGUITY_PROBABILITY, p))
     if delta > threshold:
@@ -142,8 +148,16 @@ def ambiguity_of(best: CalibrationResult, other: CalibrationResult) -> dict[str,
         "rotation_max_rad": float(np.max(np.linalg.norm(diff[:, :3], axis=1))),
         "translation_max_m": float(np.max(np.linalg.norm(diff[:, 3:], axis=1))),
         "max_mahalanobis2": float(np.nanmax(m2)) if np.any(np.isfinite(m2)) else float("nan"),
+        "mean_mahalanobis2": float(np.nanmean(m2)) if np.any(np.isfinite(m2)) else float("nan"),
         "_diff": diff,
     }
+
+
+def _farthest(amb: dict[str, Any]) -> tuple[float, float]:
+    """Sort key of ambiguities: the mean Mahalanobis^2 of the T_ds difference in the best solution's
+    reported covariance (RMS difference in rad + m when there is no covariance)."""
+    m2 = amb["mean_mahalanobis2"]
+    return (m2 if np.isfinite(m2) else -1.0, amb["rotation_rms_rad"] + amb["translation_rms_m"])
 
 
 def calibrate_global(
@@ -208,7 +222,7 @@ def calibrate_global(
         if amb is not None:
             amb["start"] = start.name
             ambiguities.append(amb)
-    worst = max(ambiguities, key=lambda a: a["rotation_rms_rad"] + a["translation_rms_m"], default=None)
+    worst = max(ambiguities, key=_farthest, default=None)
     if worst is not None and best.T_ds_covariances is not None:
         diff = worst["_diff"]
         best.T_ds_covariances = best.T_ds_covariances + np.einsum("ki,kj->kij", diff, diff)

@@ -80,3 +80,31 @@ def test_single_start_matches_plain_calibrate() -> None:
     b = calibrate(sim.calibration_set, sim.initial, opt)
     np.testing.assert_array_equal(a.joint_angles, b.joint_angles)
     assert len(a.extra["global"]["starts"]) == 1
+
+
+def test_the_ambiguity_test_counts_weakly_determined_parameters(two_joint) -> None:  # noqa: ANN001
+    """The likelihood-ratio test's degrees of freedom: the free kinematic parameters less the exact null
+    directions beyond the gauge. Parameters marked undetermined because a weakly held direction moves
+    them still count (the data cost changes along such directions), so a solution 15 chi-square units
+    worse on a 13-parameter chain is inside the 95 % region (22.4), not outside chi2_0.95(1) = 3.84."""
+    _, best = two_joint
+    n_free = int(np.sum(~best.calibration.gauge_fixed))
+    assert n_free == len(best.calibration.kin) - 5  # L = 2 encoderless: d_L, a_L, alpha_L, tau_s.rz, tau_s.tz
+    assert best.null_space_dim == best.n_gauge_fixed  # a generic 2-joint chain: no extra null direction
+    assert gf.determined_parameters(best) == n_free
+    no_obs = np.zeros_like(best.calibration.observable)
+    held_marked = replace(best, calibration=replace(best.calibration, observable=no_obs))
+    assert gf.determined_parameters(held_marked) == n_free
+    assert gf.determined_parameters(replace(best, null_space_dim=best.n_gauge_fixed + 2)) == n_free - 2
+    # a different solution (joint angles 20 mrad off) whose data cost is 15 chi2 higher is an ambiguity
+    vf = float(best.variance_factor)
+    scale = np.sqrt(1.0 + 15.0 * vf / (2.0 * data_cost(best)))
+    worse = replace(
+        best,
+        joint_angles=best.joint_angles + 0.02,
+        residuals_static=[r * scale for r in best.residuals_static],
+        residuals_dynamic=[r * scale for r in best.residuals_dynamic],
+    )
+    amb = ambiguity_of(best, worse)
+    assert amb is not None and amb["cost_difference_chi2"] == pytest.approx(15.0, rel=1e-6)
+    assert amb["threshold_chi2"] == pytest.approx(22.36, abs=0.01)
