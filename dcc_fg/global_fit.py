@@ -20,12 +20,22 @@ as well: it lies inside the likelihood-ratio confidence region of the kinematics
 (:func:`determined_parameters`) is the number of free kinematic parameters less the directions the data
 leave exactly undetermined beyond the gauge; directions held by the weak prior because the data determine
 them only weakly count, since the data cost does change along them (on nearly intersecting 3-axis
-chains, solutions along those directions differ by 5-25 chi-square units). When such a solution's
-per-snapshot ``T_ds`` differs from the best one by more than the reported uncertainty, the data do not
-decide between the two: the result carries ``extra["global"]["ambiguity"]`` (the two solutions' ``T_ds``
-difference, rad and m, of the ambiguous solution farthest from the best one in the best one's reported
-uncertainty) and every snapshot's reported ``T_ds`` covariance gets the outer product of that difference
-added, so the 1-sigma a user reads is never smaller than the ambiguity.
+chains, solutions along those directions differ by 5-25 chi-square units).
+
+* Every solution in that region is a plausible answer, so the reported ``T_ds`` covariance covers
+  them: each snapshot's covariance gets the outer product of the ``T_ds`` difference to the one
+  farthest from the best (mean Mahalanobis^2 in the best one's covariance) added
+  (``extra["global"]["spread"]``). Solutions that converge to the best one add nothing.
+* When such a solution's ``T_ds`` differs from the best one by more than the reported uncertainty
+  (Mahalanobis^2 above ``chi2_0.95(6)`` in some snapshot), the data do not decide between the two: the
+  result carries ``extra["global"]["ambiguity"]`` (the two solutions' ``T_ds`` difference, rad and m)
+  and the health report warns; with the difference added, the 1-sigma a user reads is never smaller
+  than the ambiguity.
+
+Why the spread and not the best solution's covariance alone: on nearly intersecting 3-axis chains the
+kinematics slide along weakly determined directions that leave ``T_ds`` unchanged only to first order,
+so the linearized covariance misses part of the spread of the solutions that fit as well (random
+L = 3 family, benchmarks/bench_random_mechanisms.py: NEES 8.05 with the linearized covariance alone).
 """
 
 from __future__ import annotations
@@ -123,34 +133,47 @@ def determined_parameters(result: CalibrationResult) -> int:
     return max(n_free - extra_null, 1)
 
 
-def ambiguity_of(best: CalibrationResult, other: CalibrationResult) -> dict[str, Any] | None:
-    """The ambiguity between two solutions (module docstring), or None when ``other`` fits clearly
-    worse or gives the same ``T_ds`` within the best one's reported uncertainty."""
+def fits_as_well(best: CalibrationResult, other: CalibrationResult) -> tuple[bool, float, float]:
+    """(inside the 95 % likelihood-ratio region of the best solution, cost difference in chi-square
+    units, threshold): ``2 (c_other - c_best) / s^2 <= chi2_0.95(p)`` (module docstring)."""
     vf = max(float(best.variance_factor), 1e-12)
-    p = determined_parameters(best)
     delta = 2.0 * (data_cost(other) - data_cost(best)) / vf
-    threshold = float(chi2.ppf(AMBIGUITY_PROBABILITY, p))
-    if delta > threshold:
-        return None
+    threshold = float(chi2.ppf(AMBIGUITY_PROBABILITY, determined_parameters(best)))
+    return delta <= threshold, float(delta), threshold
+
+
+def solution_difference(best: CalibrationResult, other: CalibrationResult) -> dict[str, Any]:
+    """How far ``other``'s per-snapshot ``T_ds`` is from ``best``'s: RMS and max rotation (rad) and
+    translation (m), and the Mahalanobis^2 in ``best``'s reported covariance (max and mean over the
+    snapshots; NaN without covariances). ``_diff``: the (K, 6) differences."""
     diff = T_ds_differences(best, other)
     if best.T_ds_covariances is not None:
         covs = best.T_ds_covariances
         m2 = np.array([e @ np.linalg.lstsq(P, e, rcond=None)[0] for e, P in zip(diff, covs, strict=True)])
-        if float(np.max(m2)) < AMBIGUITY_NEES:
-            return None
     else:
         m2 = np.full(len(diff), np.nan)
+    finite = bool(np.any(np.isfinite(m2)))
     return {
-        "cost_difference_chi2": float(delta),
-        "threshold_chi2": threshold,
         "rotation_rms_rad": float(np.sqrt(np.mean(np.sum(diff[:, :3] ** 2, axis=1)))),
         "translation_rms_m": float(np.sqrt(np.mean(np.sum(diff[:, 3:] ** 2, axis=1)))),
         "rotation_max_rad": float(np.max(np.linalg.norm(diff[:, :3], axis=1))),
         "translation_max_m": float(np.max(np.linalg.norm(diff[:, 3:], axis=1))),
-        "max_mahalanobis2": float(np.nanmax(m2)) if np.any(np.isfinite(m2)) else float("nan"),
-        "mean_mahalanobis2": float(np.nanmean(m2)) if np.any(np.isfinite(m2)) else float("nan"),
+        "max_mahalanobis2": float(np.nanmax(m2)) if finite else float("nan"),
+        "mean_mahalanobis2": float(np.nanmean(m2)) if finite else float("nan"),
         "_diff": diff,
     }
+
+
+def ambiguity_of(best: CalibrationResult, other: CalibrationResult) -> dict[str, Any] | None:
+    """The ambiguity between two solutions (module docstring), or None when ``other`` fits clearly
+    worse or gives the same ``T_ds`` within the best one's reported uncertainty."""
+    inside, delta, threshold = fits_as_well(best, other)
+    if not inside:
+        return None
+    amb = solution_difference(best, other)
+    if best.T_ds_covariances is not None and amb["max_mahalanobis2"] < AMBIGUITY_NEES:
+        return None
+    return {"cost_difference_chi2": delta, "threshold_chi2": threshold, **amb}
 
 
 def _farthest(amb: dict[str, Any]) -> tuple[float, float]:
@@ -214,20 +237,22 @@ def calibrate_global(
         assert first_error is not None
         raise first_error
     best_start, best = min(results, key=lambda sr: data_cost(sr[1]))
-    ambiguities = []
+    plausible = []  # the other solutions inside the likelihood-ratio region, with their T_ds difference
     for start, res in results:
         if res is best:
             continue
-        amb = ambiguity_of(best, res)
-        if amb is not None:
-            amb["start"] = start.name
-            ambiguities.append(amb)
-    worst = max(ambiguities, key=_farthest, default=None)
-    if worst is not None and best.T_ds_covariances is not None:
-        diff = worst["_diff"]
+        inside, delta, threshold = fits_as_well(best, res)
+        if inside:
+            plausible.append({"start": start.name, "cost_difference_chi2": delta, "threshold_chi2": threshold,
+                              **solution_difference(best, res)})  # fmt: skip
+    spread = max(plausible, key=_farthest, default=None)
+    if spread is not None and best.T_ds_covariances is not None:
+        diff = spread["_diff"]
         best.T_ds_covariances = best.T_ds_covariances + np.einsum("ki,kj->kij", diff, diff)
-    for amb in ambiguities:
+    for amb in plausible:
         amb.pop("_diff")
+    ambiguities = [a for a in plausible if not a["max_mahalanobis2"] < AMBIGUITY_NEES]  # NaN (no covariance) counts
+    worst = max(ambiguities, key=_farthest, default=None)
     if worst is not None:
         log.warning(
             "another solution (start %s) fits the images as well but gives T_ds %.3g mrad / %.3g mm (RMS) apart; "
@@ -239,11 +264,13 @@ def calibrate_global(
         "chosen": best_start.name,
         "ambiguity": worst,
         "ambiguous_solutions": len(ambiguities),
+        "spread": spread,
     }
     best.calibration.statistics["global"] = {
         "solved": len(results),
         "chosen": best_start.name,
         "ambiguity": worst,
+        "spread": spread,
         "starts": report,
     }
     return best

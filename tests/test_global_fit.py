@@ -9,9 +9,10 @@ import numpy as np
 import pytest
 
 import dcc_fg.global_fit as gf
-from dcc_fg.calibrate import CalibrationOptions, calibrate
+from dcc_fg.calibrate import CalibrationOptions, calibrate, summary_statistics
 from dcc_fg.calibration_health import calibration_health
 from dcc_fg.global_fit import ambiguity_of, calibrate_global, data_cost
+from dcc_fg.report import run_summary_table
 from dcc_fg.sim.calibration_scene import SceneConfig, random_mechanism, simulate_calibration
 
 
@@ -108,3 +109,41 @@ def test_the_ambiguity_test_counts_weakly_determined_parameters(two_joint) -> No
     amb = ambiguity_of(best, worse)
     assert amb is not None and amb["cost_difference_chi2"] == pytest.approx(15.0, rel=1e-6)
     assert amb["threshold_chi2"] == pytest.approx(22.36, abs=0.01)
+
+
+def test_a_plausible_solution_within_the_uncertainty_widens_the_covariance_without_a_warning(monkeypatch) -> None:  # noqa: ANN001
+    """A second solution that fits as well and lies inside the reported uncertainty (Mahalanobis^2 below
+    chi2_0.95(6) in every snapshot) is no ambiguity, but the reported T_ds covariance covers it: the
+    outer product of its T_ds difference is added."""
+    sim = simulate_calibration(1, SceneConfig(n_calibration=15, n_validation=1))
+    real = gf.calibrate
+    calls = []
+    covs_before = {}  # id of each returned result -> its T_ds covariances as returned by calibrate
+
+    def shifted(data, initial, opt):  # noqa: ANN001, ANN202
+        res = real(data, initial, opt)
+        calls.append(res)
+        if len(calls) == 2:  # the second start "ends" 0.5 mrad of joint 1 away, with the same residuals
+            th = res.joint_angles.copy()
+            th[:, 0] += 5e-4
+            res = replace(res, joint_angles=th, extra=dict(res.extra))
+        covs_before[id(res)] = res.T_ds_covariances.copy()
+        return res
+
+    monkeypatch.setattr(gf, "calibrate", shifted)
+    res = calibrate_global(sim.calibration_set, 2, CalibrationOptions(), initial=sim.initial)
+    g = res.extra["global"]
+    spread = g["spread"]
+    assert g["ambiguity"] is None and spread is not None
+    assert {spread["start"], g["chosen"]} == {g["starts"][0]["start"], g["starts"][1]["start"]}
+    assert 0.0 < spread["max_mahalanobis2"] < gf.AMBIGUITY_NEES
+    assert 1e-4 < spread["rotation_rms_rad"] < 1e-3
+    added = res.T_ds_covariances - covs_before[id(res)]
+    # the added term is a rank-one outer product whose trace is the squared difference
+    traces = np.einsum("kii->k", added)
+    assert np.sqrt(np.mean(traces)) == pytest.approx(
+        np.hypot(spread["rotation_rms_rad"], spread["translation_rms_m"]), rel=1e-6
+    )
+    assert np.all(np.linalg.eigvalsh(added)[:, :-1] > -1e-18)
+    text = run_summary_table({**summary_statistics(res), "global": res.calibration.statistics["global"]})
+    assert "fits as well and ends within the uncertainty" in text and "AMBIGUOUS" not in text
