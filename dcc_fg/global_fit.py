@@ -23,9 +23,13 @@ them only weakly count, since the data cost does change along them (on nearly in
 chains, solutions along those directions differ by 5-25 chi-square units).
 
 * Every solution in that region is a plausible answer, so the reported ``T_ds`` covariance covers
-  them: each snapshot's covariance gets the outer product of the ``T_ds`` difference to the one
-  farthest from the best (mean Mahalanobis^2 in the best one's covariance) added
-  (``extra["global"]["spread"]``). Solutions that converge to the best one add nothing.
+  them (:func:`covering_covariance`): each snapshot's covariance gets the scatter ``S = sum_j d_j d_j^T``
+  of the ``T_ds`` differences ``d_j`` to those solutions added, scaled so that the one farthest in it
+  lies at one sigma: ``S max_j d_j^T S^+ d_j``. One solution adds ``d d^T``, the same one twice too;
+  solutions in different directions are each covered.
+  ``extra["global"]["spread"]`` names the farthest one (mean Mahalanobis^2 in the best one's
+  covariance) and ``plausible_solutions`` counts them. Solutions that converge to the best one add
+  nothing.
 * When such a solution's ``T_ds`` differs from the best one by more than the reported uncertainty
   (Mahalanobis^2 above ``chi2_0.95(6)`` in some snapshot), the data do not decide between the two: the
   result carries ``extra["global"]["ambiguity"]`` (the two solutions' ``T_ds`` difference, rad and m)
@@ -35,7 +39,8 @@ chains, solutions along those directions differ by 5-25 chi-square units).
 Why the spread and not the best solution's covariance alone: on nearly intersecting 3-axis chains the
 kinematics slide along weakly determined directions that leave ``T_ds`` unchanged only to first order,
 so the linearized covariance misses part of the spread of the solutions that fit as well (random
-L = 3 family, benchmarks/bench_random_mechanisms.py: NEES 8.05 with the linearized covariance alone).
+L = 3 family, benchmarks/bench_random_mechanisms.py: NEES 8.05 with the linearized covariance alone,
+7.22 with the farthest plausible solution's outer product added).
 """
 
 from __future__ import annotations
@@ -176,6 +181,23 @@ def ambiguity_of(best: CalibrationResult, other: CalibrationResult) -> dict[str,
     return {"cost_difference_chi2": delta, "threshold_chi2": threshold, **amb}
 
 
+def covering_covariance(diffs: FloatArray) -> FloatArray:
+    """(K, 6, 6) per snapshot: the smallest multiple of the scatter ``S = sum_j d_j d_j^T`` of the
+    differences ``diffs`` (n, K, 6) that has every ``d_j`` within one sigma: ``c S`` with
+    ``c = max_j d_j^T S^+ d_j`` (the leverages, at most 1), since ``d_j^T (c S)^+ d_j`` is the leverage
+    over ``c``; zero where all differences vanish."""
+    n, K, _ = diffs.shape
+    out = np.zeros((K, 6, 6))
+    for k in range(K):
+        D = diffs[:, k, :]
+        S = D.T @ D
+        if not np.any(S):
+            continue
+        leverage = np.einsum("ji,il,jl->j", D, np.linalg.pinv(S, rcond=1e-12, hermitian=True), D)
+        out[k] = S * float(np.max(leverage))
+    return out
+
+
 def _farthest(amb: dict[str, Any]) -> tuple[float, float]:
     """Sort key of ambiguities: the mean Mahalanobis^2 of the T_ds difference in the best solution's
     reported covariance (RMS difference in rad + m when there is no covariance)."""
@@ -246,9 +268,8 @@ def calibrate_global(
             plausible.append({"start": start.name, "cost_difference_chi2": delta, "threshold_chi2": threshold,
                               **solution_difference(best, res)})  # fmt: skip
     spread = max(plausible, key=_farthest, default=None)
-    if spread is not None and best.T_ds_covariances is not None:
-        diff = spread["_diff"]
-        best.T_ds_covariances = best.T_ds_covariances + np.einsum("ki,kj->kij", diff, diff)
+    if plausible and best.T_ds_covariances is not None:
+        best.T_ds_covariances = best.T_ds_covariances + covering_covariance(np.array([a["_diff"] for a in plausible]))
     for amb in plausible:
         amb.pop("_diff")
     ambiguities = [a for a in plausible if not a["max_mahalanobis2"] < AMBIGUITY_NEES]  # NaN (no covariance) counts
@@ -265,6 +286,7 @@ def calibrate_global(
         "ambiguity": worst,
         "ambiguous_solutions": len(ambiguities),
         "spread": spread,
+        "plausible_solutions": len(plausible),
     }
     best.calibration.statistics["global"] = {
         "solved": len(results),

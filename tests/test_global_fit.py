@@ -147,3 +147,23 @@ def test_a_plausible_solution_within_the_uncertainty_widens_the_covariance_witho
     assert np.all(np.linalg.eigvalsh(added)[:, :-1] > -1e-18)
     text = run_summary_table({**summary_statistics(res), "global": res.calibration.statistics["global"]})
     assert "fits as well and ends within the uncertainty" in text and "AMBIGUOUS" not in text
+
+
+def test_covering_covariance_has_every_plausible_solution_within_one_sigma() -> None:
+    rng = np.random.default_rng(3)
+    d = rng.normal(size=(1, 4, 6)) * 1e-3
+    np.testing.assert_allclose(gf.covering_covariance(d), np.einsum("nki,nkj->kij", d, d), rtol=1e-9)
+    # the same solution twice covers it once, not twice
+    np.testing.assert_allclose(gf.covering_covariance(np.concatenate([d, d])), gf.covering_covariance(d), rtol=1e-9)
+    # solutions in orthogonal directions are each covered at one sigma
+    e = np.zeros((2, 1, 6))
+    e[0, 0, 0], e[1, 0, 4] = 2e-3, 5e-4
+    np.testing.assert_allclose(gf.covering_covariance(e)[0], np.diag([4e-6, 0, 0, 0, 2.5e-7, 0]), atol=1e-18)
+    # any set: every difference within one sigma, the farthest exactly at one sigma
+    for n in (2, 3, 5, 9):
+        D = rng.normal(size=(n, 3, 6)) * rng.uniform(1e-4, 1e-2, size=(n, 1, 1))
+        C = gf.covering_covariance(D)
+        for k in range(3):
+            m2 = [x @ np.linalg.pinv(C[k], rcond=1e-12) @ x for x in D[:, k]]
+            assert max(m2) == pytest.approx(1.0, rel=1e-6) and min(m2) > 0.0
+    assert not np.any(gf.covering_covariance(np.zeros((3, 2, 6))))
