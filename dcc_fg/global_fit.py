@@ -170,6 +170,12 @@ def solution_difference(best: CalibrationResult, other: CalibrationResult) -> di
     }
 
 
+def is_ambiguous(difference: dict[str, Any]) -> bool:
+    """Whether a :func:`solution_difference` is a different answer: Mahalanobis^2 at or above
+    ``chi2_0.95(6)`` in some snapshot, or no covariance to tell (NaN)."""
+    return not difference["max_mahalanobis2"] < AMBIGUITY_NEES
+
+
 def ambiguity_of(best: CalibrationResult, other: CalibrationResult) -> dict[str, Any] | None:
     """The ambiguity between two solutions (module docstring), or None when ``other`` fits clearly
     worse or gives the same ``T_ds`` within the best one's reported uncertainty."""
@@ -177,9 +183,7 @@ def ambiguity_of(best: CalibrationResult, other: CalibrationResult) -> dict[str,
     if not inside:
         return None
     amb = solution_difference(best, other)
-    if best.T_ds_covariances is not None and amb["max_mahalanobis2"] < AMBIGUITY_NEES:
-        return None
-    return {"cost_difference_chi2": delta, "threshold_chi2": threshold, **amb}
+    return {"cost_difference_chi2": delta, "threshold_chi2": threshold, **amb} if is_ambiguous(amb) else None
 
 
 def covering_covariance(diffs: FloatArray) -> FloatArray:
@@ -187,7 +191,7 @@ def covering_covariance(diffs: FloatArray) -> FloatArray:
     differences ``diffs`` (n, K, 6) that has every ``d_j`` within one sigma: ``c S`` with
     ``c = max_j d_j^T S^+ d_j`` (the leverages, at most 1), since ``d_j^T (c S)^+ d_j`` is the leverage
     over ``c``; zero where all differences vanish."""
-    n, K, _ = diffs.shape
+    K = diffs.shape[1]
     out = np.zeros((K, 6, 6))
     for k in range(K):
         D = diffs[:, k, :]
@@ -273,7 +277,7 @@ def calibrate_global(
         best.T_ds_covariances = best.T_ds_covariances + covering_covariance(np.array([a["_diff"] for a in plausible]))
     for amb in plausible:
         amb.pop("_diff")
-    ambiguities = [a for a in plausible if not a["max_mahalanobis2"] < AMBIGUITY_NEES]  # NaN (no covariance) counts
+    ambiguities = [a for a in plausible if is_ambiguous(a)]
     worst = max(ambiguities, key=_farthest, default=None)
     if worst is not None:
         log.warning(
