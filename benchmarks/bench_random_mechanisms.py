@@ -66,14 +66,26 @@ def member_line(r: MechanismRecord) -> str:
         f"{_fmt(r.truth_excess_chi2)}/{r.truth_excess_dof} "
         f"| t render {_fmt(r.render_time_s, '.1f')} detect {_fmt(r.detect_time_s, '.1f')} "
         f"auto {_fmt(r.auto.time_s, '.1f')} truth {_fmt(r.truth_start.time_s, '.1f')} s"
+        + _model_text(r)
         + (f" | {r.failure}" if r.failure else "")
+    )
+
+
+def _model_text(r: MechanismRecord) -> str:
+    """The model selection of the automatic run, when it was tested."""
+    sel = r.model_selection or {}
+    if "gain_chi2" not in sel:
+        return ""
+    return (
+        f" | model {sel['model']} (general fits {_fmt(sel['gain_chi2'], '.1f')} chi2 better, "
+        f"threshold {_fmt(sel['threshold_chi2'], '.1f')}; search cost {_fmt(r.search_data_cost, '.6g')})"
     )
 
 
 def table(summaries: list[FamilySummary]) -> str:
     """The per-L verdict table."""
     head = (
-        f"{'L':>2} {'n':>3} {'global min':>10} {'strict':>6} {'healthy':>7} {'obs':>4} {'prior':>5} "
+        f"{'L':>2} {'n':>3} {'global min':>10} {'strict':>6} {'healthy':>7} {'obs':>4} {'prior':>5} {'exact':>5} "
         f"{'rot/CRB pooled':>14} {'med':>5} {'max':>5} "
         f"{'tra/CRB pooled':>14} {'med':>5} {'max':>5} {'NEES':>6} {'95% interval':>15} {'t render':>8} "
         f"{'t detect':>8} {'t auto':>6} {'t truth':>7} {'verdict':>7}"
@@ -84,7 +96,7 @@ def table(summaries: list[FamilySummary]) -> str:
         lines.append(
             f"{s.n_joints:>2} {s.n:>3} {f'{s.successes}/{s.n}':>10} {f'{s.strict_successes}/{s.n}':>6} "
             f"{f'{s.healthy}/{s.n}':>7} {s.n_observable:>4} "
-            f"{s.n_held_by_prior:>5} "
+            f"{s.n_held_by_prior:>5} {s.n_exact_model:>5} "
             f"{_fmt(s.rotation_ratio_pooled):>14} {_fmt(s.rotation_ratio_median):>5} {_fmt(s.rotation_ratio_max):>5} "
             f"{_fmt(s.translation_ratio_pooled):>14} {_fmt(s.translation_ratio_median):>5} "
             f"{_fmt(s.translation_ratio_max):>5} {_fmt(s.nees_mean):>6} {f'[{_fmt(lo)}, {_fmt(hi)}]':>15} "

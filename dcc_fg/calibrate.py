@@ -636,6 +636,13 @@ def whitened_sum_of_squares(res_s: list[FloatArray], res_d: list[FloatArray], im
     return ss + sum(float(np.sum(r * r)) / float(s) ** 2 for r, s in zip(res_d, image_sigma[:, 1], strict=True))
 
 
+def data_cost(result: CalibrationResult) -> float:
+    """0.5 * sum of the whitened squared pixel residuals (no priors, no robust loss): GTSAM's error
+    of the data factors alone, in the units of ``final_error`` (each image whitened by its sigma,
+    ``extra["solver"]["image_sigma"]``, measured before the solve: the same for every start)."""
+    return 0.5 * whitened_sum_of_squares(result.residuals_static, result.residuals_dynamic, image_sigma_of(result))
+
+
 def corner_sigma(res: CalibrationResult) -> dict[str, float]:
     """A-posteriori corner noise of each camera, px (1 sigma per axis, RMS over its images): the
     whitening sigmas of the solve times the square root of the variance factor (the given sigma when

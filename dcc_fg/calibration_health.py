@@ -536,6 +536,21 @@ COVERED_T_DS_STD = (
     "actual error up to 1.3x the reported 1-sigma)"
 )
 
+EXACT_MODEL_T_DS_STD = (
+    "the axes intersect within what the images resolve, so the exactly intersecting model was kept "
+    "(dcc_fg.model_selection: free link offsets fit only {gain:.3g} chi2 better, threshold {threshold:.3g}); in "
+    "it these directions are exactly undetermined and leave every T_ds unchanged, so the reported T_ds 1-sigma "
+    "is that model's own"
+)
+
+
+def _t_ds_std_text(result: CalibrationResult) -> str:
+    """Which T_ds covariance a result with held directions reports (the health message's second half)."""
+    sel = result.extra.get("model_selection") or {}
+    if sel.get("model") == "exactly-intersecting":
+        return EXACT_MODEL_T_DS_STD.format(gain=sel["gain_chi2"], threshold=sel["threshold_chi2"])
+    return COVERED_T_DS_STD if "global" in result.extra else OPTIMISTIC_T_DS_STD
+
 
 def determination_checks(result: CalibrationResult) -> list[HealthCheck]:
     """Warnings about what the data did not decide: kinematic directions held by a weak prior
@@ -549,7 +564,7 @@ def determination_checks(result: CalibrationResult) -> list[HealthCheck]:
                 False,
                 (result.extra.get("held_by_prior_text") or f"{len(held)} kinematic direction(s) held by a weak prior")
                 + "; "
-                + (COVERED_T_DS_STD if "global" in result.extra else OPTIMISTIC_T_DS_STD),
+                + _t_ds_std_text(result),
                 "per-snapshot T_ds are determined by the images; for the kinematics themselves give --nominal (if "
                 "the gimbal's geometry is known) or record more snapshots over wider joint ranges",
                 float(len(held)),

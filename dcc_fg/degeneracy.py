@@ -31,6 +31,9 @@ the last link's d, a, alpha are gauge-fixed):
 
 * ``intersecting``: consecutive axes intersect: ``a_l = 0`` (l < L) and ``d_l = 0`` (2 <= l < L)
   with a 1-sigma of ``NOMINAL_OFFSET_SIGMA``;
+* ``exactly-intersecting``: the same offsets held at zero with a 1-sigma of ``EXACT_OFFSET_SIGMA``
+  (1 micrometre: the intersecting model itself, e.g. a spherical wrist; :mod:`dcc_fg.model_selection`
+  tries it automatically);
 * ``orthogonal``: consecutive axes are perpendicular: ``|alpha_l| = 90 deg`` (sign of the start)
   with a 1-sigma of ``NOMINAL_TWIST_SIGMA``;
 * ``yaw-roll-pitch`` / ``pan-tilt-roll`` / ``pan-tilt``: both (the usual camera gimbals).
@@ -61,7 +64,8 @@ PRIOR_REL = REL_TOL
 INVOLVED = 0.2  # |component| of a held direction (unit, scaled) for a parameter to be named
 NOMINAL_OFFSET_SIGMA = 0.005  # m
 NOMINAL_TWIST_SIGMA = np.deg2rad(2.0)  # rad
-NOMINALS = ("intersecting", "orthogonal", "yaw-roll-pitch", "pan-tilt-roll", "pan-tilt")
+EXACT_OFFSET_SIGMA = 1e-6  # m, the offsets of ``exactly-intersecting`` (a constraint, not a preference)
+NOMINALS = ("intersecting", "exactly-intersecting", "orthogonal", "yaw-roll-pitch", "pan-tilt-roll", "pan-tilt")
 
 
 @dataclass
@@ -175,13 +179,14 @@ def nominal_priors(
     free_index = {int(k): i for i, k in enumerate(np.flatnonzero(free))}
     entries: list[tuple[int, float, float]] = []
     offsets_zero = nominal != "orthogonal"
-    twists_90 = nominal != "intersecting"
+    twists_90 = nominal not in ("intersecting", "exactly-intersecting")
+    offset_sigma = EXACT_OFFSET_SIGMA if nominal == "exactly-intersecting" else NOMINAL_OFFSET_SIGMA
     for link in range(n_joints - 1):  # l < L (0-based link < L - 1)
         base = 12 + 3 * link
         if offsets_zero:
-            entries.append((base + 1, 0.0, NOMINAL_OFFSET_SIGMA))  # a_l
+            entries.append((base + 1, 0.0, offset_sigma))  # a_l
             if link >= 1:
-                entries.append((base, 0.0, NOMINAL_OFFSET_SIGMA))  # d_l, 2 <= l < L
+                entries.append((base, 0.0, offset_sigma))  # d_l, 2 <= l < L
         if twists_90:
             sign = 1.0 if np.sin(kin[base + 2]) >= 0 else -1.0
             entries.append((base + 2, sign * np.pi / 2.0, NOMINAL_TWIST_SIGMA))

@@ -36,6 +36,11 @@ chains, solutions along those directions differ by 5-25 chi-square units).
   and the health report warns; with the difference added, the 1-sigma a user reads is never smaller
   than the ambiguity.
 
+Model. The search fits the general model (free link offsets). When its best solution holds directions
+by prior (nearly intersecting axes), :func:`dcc_fg.model_selection.select_intersecting` then tests the
+exactly intersecting model against it and keeps that one when the offsets do not fit the images
+significantly better (a spherical wrist's general fit spends the offsets on the corner noise).
+
 Why the spread and not the best solution's covariance alone: on nearly intersecting 3-axis chains the
 kinematics slide along weakly determined directions that leave ``T_ds`` unchanged only to first order,
 so the linearized covariance misses part of the spread of the solutions that fit as well (random
@@ -56,15 +61,10 @@ from numpy.typing import NDArray
 from scipy.stats import chi2
 
 from dcc_fg.auto_init import auto_initial_candidates
-from dcc_fg.calibrate import (
-    CalibrationOptions,
-    CalibrationResult,
-    calibrate,
-    image_sigma_of,
-    whitened_sum_of_squares,
-)
+from dcc_fg.calibrate import CalibrationOptions, CalibrationResult, calibrate, data_cost
 from dcc_fg.data import CalibrationDataset
 from dcc_fg.model import GimbalCalibration
+from dcc_fg.model_selection import select_intersecting
 from dcc_fg.util.errors import EstimatorError
 
 FloatArray = NDArray[np.float64]
@@ -81,13 +81,6 @@ class Start:
     initial: GimbalCalibration
     data: CalibrationDataset
     pose_level_rms: float = float("nan")
-
-
-def data_cost(result: CalibrationResult) -> float:
-    """0.5 * sum of the whitened squared pixel residuals (no priors, no robust loss): GTSAM's error
-    of the data factors alone, in the units of ``final_error`` (each image whitened by its sigma,
-    ``extra["solver"]["image_sigma"]``, measured before the solve: the same for every start)."""
-    return 0.5 * whitened_sum_of_squares(result.residuals_static, result.residuals_dynamic, image_sigma_of(result))
 
 
 def T_ds_differences(a: CalibrationResult, b: CalibrationResult) -> FloatArray:
@@ -229,8 +222,10 @@ def calibrate_global(
         initial_name: how ``initial`` is named in the report (default ``gimbal.yaml``).
 
     Returns:
-        the solution with the lowest data cost; ``extra["global"]`` lists every start (name,
-        pose-level RMS, final data cost, iterations, or its error) and the ambiguity, if any.
+        the solution with the lowest data cost, or the exactly intersecting solution when the data do not
+        support link offsets (:mod:`dcc_fg.model_selection`, reported in ``extra["model_selection"]``);
+        ``extra["global"]`` lists every start of the search (name, pose-level RMS, final data cost,
+        iterations, or its error) and the ambiguity, if any.
 
     Raises:
         the first start's error when every start fails.
@@ -300,4 +295,4 @@ def calibrate_global(
         "spread": spread,
         "starts": report,
     }
-    return best
+    return select_intersecting(data, best, opt).result

@@ -266,6 +266,12 @@ def run_summary_table(stats: dict[str, Any]) -> str:
                 f"{spread['rotation_rms_rad'] * 1e3:.3g} mrad / {spread['translation_rms_m'] * 1e3:.3g} mm apart "
                 "(RMS; included in the T_ds 1-sigma below)"
             )
+    sel = stats.get("model_selection")
+    if sel and "gain_chi2" in sel:
+        lines.append(
+            f"model: {sel['model']} (free link offsets fit {sel['gain_chi2']:.3g} chi2 better than exactly "
+            f"intersecting axes, threshold {sel['threshold_chi2']:.3g} for {sel['dof']} dof)"
+        )
     if stats.get("held_by_prior"):
         lines.append(
             f"held by a weak prior (not determined by the data): {stats['held_by_prior']} direction(s) of the "

@@ -40,6 +40,7 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
             "dcc_fg.init",
             "dcc_fg.auto_init",
             "dcc_fg.global_fit",
+            "dcc_fg.model_selection",
             "dcc_fg.incremental",
             "dcc_fg.time_offset",
             "dcc_fg.degeneracy",
