@@ -9,9 +9,11 @@ import pytest
 from scipy.stats import chi2
 
 from dcc_fg.calibrate import CalibrationOptions
+from dcc_fg.calibration_health import determination_checks
 from dcc_fg.degeneracy import EXACT_OFFSET_SIGMA, nominal_priors
 from dcc_fg.global_fit import calibrate_global
 from dcc_fg.model_selection import ALPHA, EXACT, bilinear_dof, decide, offset_entries
+from dcc_fg.report import run_summary_table
 from dcc_fg.sim.calibration_scene import SceneConfig, random_mechanism, simulate_calibration
 from dcc_fg.sim.mechanism_family import family_member, simulate_member
 from dcc_fg.studies.calibration_accuracy import T_ds_errors, cramer_rao_bound, nees_T_ds
@@ -55,6 +57,13 @@ def test_a_mechanism_without_held_directions_is_not_tested() -> None:
     sel = res.extra["model_selection"]
     assert sel["model"] == "general" and "not tested" in sel["reason"]
     assert "held_by_prior" not in res.extra
+    assert "model:" not in run_summary_table(res.calibration.statistics)  # nothing tested, nothing said
+    # a kept exactly intersecting model is said in the run summary and in the held directions' health message
+    report = {"model": EXACT, "gain_chi2": 26.5, "threshold_chi2": 46.8, "dof": 21}
+    assert f"model: {EXACT}" in run_summary_table({**res.calibration.statistics, "model_selection": report})
+    res.extra.update(model_selection=report, held_by_prior=[{"parameters": ["dh1.alpha"]}])
+    (check,) = [c for c in determination_checks(res) if c.name == "determined.kinematics"]
+    assert "exactly intersecting model was kept" in check.message and "26.5" in check.message
 
 
 def _first_members(intersecting: bool, count: int) -> list[int]:

@@ -546,9 +546,11 @@ def add_solver_flags(c: argparse.ArgumentParser) -> None:
         "automatic start (distinct minima of the axis fit) and keep the lowest cost, reporting an ambiguity when "
         "another solution fits as well; single: solve from --gimbal alone")  # fmt: skip
     opt(c, "--nominal", "solver.nominal", choices=list(NOMINALS), help="hold the DH links near a nominal geometry "
-        "by priors: intersecting (link offsets 0 +- 5 mm), orthogonal (twists +-90 +- 2 deg), yaw-roll-pitch / "
-        "pan-tilt-roll / pan-tilt (both). Directions the data do not determine are always held by a weak prior "
-        "and reported (held_by_prior in calibration.yaml)")  # fmt: skip
+        "by priors: intersecting (link offsets 0 +- 5 mm), exactly-intersecting (offsets 0 +- 1 um: the "
+        "intersecting model itself), orthogonal (twists +-90 +- 2 deg), yaw-roll-pitch / pan-tilt-roll / pan-tilt "
+        "(both). Directions the data do not determine are always held by a weak prior and reported (held_by_prior "
+        "in calibration.yaml); without --nominal the global search tests exactly intersecting axes against free "
+        "offsets when it holds any (model_selection in calibration.yaml)")  # fmt: skip
     opt(c, "--mode", "solver.mode", choices=["encoderless", "encoders"],
         help="joint angles unknown (encoderless, default) or read from joints.csv / JointState (encoders)")  # fmt: skip
     opt(c, "--formulation", "solver.formulation", choices=["bundle", "two_way"],
