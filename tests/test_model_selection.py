@@ -12,7 +12,7 @@ from dcc_fg.calibrate import CalibrationOptions
 from dcc_fg.calibration_health import determination_checks
 from dcc_fg.degeneracy import EXACT_OFFSET_SIGMA, nominal_priors
 from dcc_fg.global_fit import calibrate_global
-from dcc_fg.model_selection import ALPHA, EXACT, bilinear_dof, decide, offset_entries
+from dcc_fg.model_selection import ALPHA, EXACT, bilinear_dof, decide, offset_entries, should_test
 from dcc_fg.report import run_summary_table
 from dcc_fg.sim.calibration_scene import SceneConfig, random_mechanism, simulate_calibration
 from dcc_fg.sim.mechanism_family import family_member, simulate_member
@@ -62,6 +62,8 @@ def test_a_mechanism_without_held_directions_is_not_tested() -> None:
     report = {"model": EXACT, "gain_chi2": 26.5, "threshold_chi2": 46.8, "dof": 21}
     assert f"model: {EXACT}" in run_summary_table({**res.calibration.statistics, "model_selection": report})
     res.extra.update(model_selection=report, held_by_prior=[{"parameters": ["dh1.alpha"]}])
+    # two joints are not tested even with held directions (the module docstring's member 28)
+    assert not should_test(res, CalibrationOptions())
     (check,) = [c for c in determination_checks(res) if c.name == "determined.kinematics"]
     assert "exactly intersecting model was kept" in check.message and "26.5" in check.message
 
