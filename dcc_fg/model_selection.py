@@ -54,6 +54,7 @@ import logging
 from dataclasses import dataclass, replace
 from typing import Any
 
+import numpy as np
 from scipy.stats import chi2
 
 from dcc_fg.calibrate import CalibrationOptions, CalibrationResult, calibrate, data_cost
@@ -164,14 +165,22 @@ def select_intersecting(data: CalibrationDataset, general: CalibrationResult, op
         "the axes intersect within what the images resolve: the general model fits only %.1f chi2 better "
         "(threshold %.1f, %d dof); keeping the exactly intersecting model", gain, threshold, dof,
     )  # fmt: skip
+    # the offsets are the model's, not measured: no standard deviation, not observable
+    offsets = offset_entries(exact.calibration.n_joints)
+    report["held_at_zero"] = [exact.calibration.names[i] for i in offsets]
+    if exact.calibration.observable is not None:
+        exact.calibration.observable[offsets] = False
+    if exact.calibration.kin_std is not None:
+        exact.calibration.kin_std[offsets] = np.nan
     exact.extra["model_selection"] = report
     # the search's report stays (its starts, its chosen general solution); its ambiguities were between
     # general-model solutions, which the kept model does not have
     note = "search of the general model; the exactly intersecting model was kept (model_selection)"
+    dropped = {"ambiguity": None, "spread": None}  # between general-model solutions: not in the kept covariance
     if "global" in general.extra:
-        exact.extra["global"] = {**general.extra["global"], "ambiguity": None, "ambiguous_solutions": 0, "note": note}
+        exact.extra["global"] = {**general.extra["global"], **dropped, "ambiguous_solutions": 0,
+                                 "plausible_solutions": 0, "note": note}  # fmt: skip
     if "global" in general.calibration.statistics:
-        exact.calibration.statistics["global"] = {**general.calibration.statistics["global"], "ambiguity": None,
-                                                  "note": note}  # fmt: skip
+        exact.calibration.statistics["global"] = {**general.calibration.statistics["global"], **dropped, "note": note}
     exact.calibration.statistics["model_selection"] = report
     return Selection(exact, report)

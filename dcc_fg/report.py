@@ -245,6 +245,11 @@ def run_summary_table(stats: dict[str, Any]) -> str:
             f"parameters observable ({', '.join(obs['observable']) or 'none'})"
             + (f"; held fixed to remove the gauge: {', '.join(fixed)}" if fixed else "")
             + (f"; estimated but gauge-dependent (no std): {', '.join(dep)}" if dep else "")
+            + (
+                f"; held at zero (exactly intersecting axes): {', '.join(obs['held_at_zero'])}"
+                if obs.get("held_at_zero")
+                else ""
+            )
         )
     glob = stats.get("global")
     if glob:

@@ -228,16 +228,23 @@ def T_ds_std_summary(result: CalibrationResult) -> dict[str, dict[str, float]] |
 
 
 def observability_summary(cal: GimbalCalibration) -> dict[str, Any] | None:
-    """Observable / gauge-fixed / gauge-dependent kinematic parameter names (see dcc_fg.calibrate)."""
+    """Observable / gauge-fixed / gauge-dependent kinematic parameter names (see dcc_fg.calibrate), and the
+    link offsets held at zero by the exactly intersecting model (:mod:`dcc_fg.model_selection`)."""
     if cal.observable is None:
         return None
     fixed = cal.gauge_fixed if cal.gauge_fixed is not None else np.zeros(len(cal.names), dtype=bool)
+    held_zero = list((cal.statistics.get("model_selection") or {}).get("held_at_zero", []))
     return {
         "n_parameters": len(cal.names),
         "n_observable": int(np.count_nonzero(cal.observable)),
         "observable": [n for n, o in zip(cal.names, cal.observable, strict=True) if o],
         "gauge_fixed": [n for n, f in zip(cal.names, fixed, strict=True) if f],
-        "gauge_dependent": [n for n, o, f in zip(cal.names, cal.observable, fixed, strict=True) if not o and not f],
+        "gauge_dependent": [
+            n
+            for n, o, f in zip(cal.names, cal.observable, fixed, strict=True)
+            if not o and not f and n not in held_zero
+        ],
+        "held_at_zero": held_zero,
     }
 
 
