@@ -97,6 +97,7 @@ from dcc_fg.data import CalibrationDataset, Snapshot
 from dcc_fg.global_fit import calibrate_global
 from dcc_fg.init import joint_angles_from_T_ds, pnp_pose
 from dcc_fg.model import GimbalCalibration
+from dcc_fg.model_selection import EXACT
 from dcc_fg.planning.plan import PlannedSnapshot, plan_snapshots
 from dcc_fg.planning.predict import accuracy_over_range, kinematics_information
 from dcc_fg.planning.range_spec import Tolerance, default_range
@@ -272,6 +273,9 @@ class GlobalSolution:
         T_st: (K, 4, 4) target -> static camera; ``T_dt`` (K, 4, 4) the PnP target -> gimbal camera poses.
         joint_angles: (K, L) rad.
         iterations: Levenberg-Marquardt iterations; ``solve_time_s`` wall time of the solve, s.
+        nominal: the nominal geometry of the kept model (``exactly-intersecting`` when the model selection
+            of :mod:`dcc_fg.model_selection` kept it, else the options' ``nominal``); the warm updates and
+            the final solve use it.
     """
 
     n_snapshots: int
@@ -282,6 +286,7 @@ class GlobalSolution:
     joint_angles: FloatArray
     iterations: int
     solve_time_s: float
+    nominal: str | None = None
 
 
 def solve_global(
@@ -306,6 +311,7 @@ def solve_global(
         joint_angles=res.joint_angles.copy(),
         iterations=int(res.iterations),
         solve_time_s=time.perf_counter() - t0,
+        nominal=EXACT if (res.extra.get("model_selection") or {}).get("model") == EXACT else options.nominal,
     )
 
 
@@ -375,6 +381,7 @@ class IncrementalCalibration:
         self._values: gtsam.Values | None = None
         self._isam: gtsam.ISAM2 | None = None
         self._n_held = 0
+        self._nominal: str | None = self.options.solver.nominal  # of the last global solve's kept model
         self._n_obs = 0  # pixel coordinates (2 per corner) in the graph
         self._last_global = 0
         self._global_rms = float("nan")
@@ -678,7 +685,8 @@ class IncrementalCalibration:
             fixed=sol.gauge_fixed.copy(),
             offsets=gauge_fixed_joint_offsets(L, "encoderless"),
         )
-        held = hold_degenerate_directions(problem, opt.nominal)
+        self._nominal = sol.nominal
+        held = hold_degenerate_directions(problem, sol.nominal)
         graph, values = build_graph(problem)
         for factor in held.factors(KIN_KEY):
             graph.add(factor)
@@ -845,7 +853,10 @@ class IncrementalCalibration:
         cal, thetas, _ = self.current()
         data = self.data
         guesses = replace(data, snapshots=[replace(s, joints=t) for s, t in zip(data.snapshots, thetas, strict=True)])
-        res = calibrate(guesses, cal, self.options.solver)
+        res = calibrate(guesses, cal, replace(self.options.solver, nominal=self._nominal))
+        if self._nominal == EXACT and self.options.solver.nominal != EXACT:
+            res.extra["model_selection"] = {"model": EXACT, "reason": "kept by the last global solve"}
+            res.calibration.statistics["model_selection"] = res.extra["model_selection"]
         res.extra["incremental"] = {
             "updates": [u.to_dict() for u in self.updates],
             "global_solves": sum(1 for u in self.updates if u.strategy == "global"),

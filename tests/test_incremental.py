@@ -24,6 +24,7 @@ from dcc_fg.data import CalibrationDataset
 from dcc_fg.global_fit import calibrate_global, data_cost
 from dcc_fg.incremental import IncrementalCalibration, IncrementalOptions, Update
 from dcc_fg.io.camchain import CamchainEntry, camchain_to_yaml
+from dcc_fg.model_selection import EXACT, offset_entries
 from dcc_fg.planning.range_spec import Tolerance
 from dcc_fg.sim.calibration_scene import SceneConfig, SimulatedCalibration, simulate_calibration
 from dcc_fg.sim.write_dataset import CalibrationSimSpec, write_calibration_dataset
@@ -396,3 +397,23 @@ def test_polling_an_image_folder_reads_each_image_once(tmp_path: Path, monkeypat
         assert np.array_equal(got[s.timestamp_ns].static.ids, s.static.ids)
         assert np.array_equal(got[s.timestamp_ns].static.pixels, s.static.pixels)
         assert np.array_equal(got[s.timestamp_ns].dynamic.pixels, s.dynamic.pixels)
+
+
+def test_the_model_kept_by_the_global_solve_is_used_to_the_end(monkeypatch) -> None:  # noqa: ANN001
+    """When the global solve keeps the exactly intersecting model (dcc_fg.model_selection), the warm
+    updates and the final solve hold the link offsets at zero too (not the general model again)."""
+    _, data = _scene(10, seed=5)
+    real = incremental.calibrate_global
+
+    def exact_kept(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+        res = real(*args, **kwargs)
+        res.extra["model_selection"] = {"model": EXACT}
+        return res
+
+    monkeypatch.setattr(incremental, "calibrate_global", exact_kept)
+    inc = IncrementalCalibration(replace(data, snapshots=[]), 2, IncrementalOptions(start_snapshots=8, global_until=0))
+    for s in data.snapshots:
+        inc.add(s)
+    res = inc.finish()
+    assert res.extra["nominal"] == EXACT and res.extra["model_selection"]["model"] == EXACT
+    assert abs(res.calibration.kin[offset_entries(2)[0]]) < 1e-5  # a_1 held at zero (1 um prior)
