@@ -57,6 +57,7 @@ from scipy import stats
 from dcc_fg.calibrate import CalibrationResult
 from dcc_fg.calibration_graph import gauge_fixed_joint_offsets, gauge_fixed_kin
 from dcc_fg.data import CalibrationDataset
+from dcc_fg.degeneracy import EXACT
 from dcc_fg.init import mean_pose, pose_level_refine, tangent_error
 from dcc_fg.noise_floor import NoiseFloor, noise_floor
 from dcc_fg.util.health import FALSE_ALARM_PROBABILITY, HealthCheck, HealthReport
@@ -550,7 +551,7 @@ EXACT_MODEL_T_DS_STD = (
 def _t_ds_std_text(result: CalibrationResult) -> str:
     """Which T_ds covariance a result with held directions reports (the health message's second half)."""
     sel = result.extra.get("model_selection") or {}
-    if sel.get("model") == "exactly-intersecting":
+    if sel.get("model") == EXACT:
         return EXACT_MODEL_T_DS_STD.format(gain=sel["gain_chi2"], threshold=sel["threshold_chi2"])
     return COVERED_T_DS_STD if "global" in result.extra else OPTIMISTIC_T_DS_STD
 

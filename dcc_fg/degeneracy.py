@@ -65,7 +65,8 @@ INVOLVED = 0.2  # |component| of a held direction (unit, scaled) for a parameter
 NOMINAL_OFFSET_SIGMA = 0.005  # m
 NOMINAL_TWIST_SIGMA = np.deg2rad(2.0)  # rad
 EXACT_OFFSET_SIGMA = 1e-6  # m, the offsets of ``exactly-intersecting`` (a constraint, not a preference)
-NOMINALS = ("intersecting", "exactly-intersecting", "orthogonal", "yaw-roll-pitch", "pan-tilt-roll", "pan-tilt")
+EXACT = "exactly-intersecting"  # the nominal of the intersecting model itself (dcc_fg.model_selection keeps it)
+NOMINALS = ("intersecting", EXACT, "orthogonal", "yaw-roll-pitch", "pan-tilt-roll", "pan-tilt")
 
 
 @dataclass
@@ -168,6 +169,18 @@ def offset_directions(kin: FloatArray, n_joints: int, offsets: list[int]) -> Flo
     return out
 
 
+def offset_entries(n_joints: int) -> list[int]:
+    """Indices into the kinematic vector of the link offsets that intersecting axes zero:
+    ``a_l`` (l < L) and ``d_l`` (2 <= l < L), ascending."""
+    out = []
+    for link in range(n_joints - 1):  # l < L (0-based link < L - 1)
+        base = 12 + 3 * link
+        if link >= 1:
+            out.append(base)  # d_l
+        out.append(base + 1)  # a_l
+    return out
+
+
 def nominal_priors(
     nominal: str | None, kin: FloatArray, n_joints: int, free: NDArray[np.bool_]
 ) -> list[tuple[int, float, float]]:
@@ -178,18 +191,14 @@ def nominal_priors(
         raise ValueError(f"--nominal must be one of {', '.join(NOMINALS)}, got '{nominal}'")
     free_index = {int(k): i for i, k in enumerate(np.flatnonzero(free))}
     entries: list[tuple[int, float, float]] = []
-    offsets_zero = nominal != "orthogonal"
-    twists_90 = nominal not in ("intersecting", "exactly-intersecting")
-    offset_sigma = EXACT_OFFSET_SIGMA if nominal == "exactly-intersecting" else NOMINAL_OFFSET_SIGMA
-    for link in range(n_joints - 1):  # l < L (0-based link < L - 1)
-        base = 12 + 3 * link
-        if offsets_zero:
-            entries.append((base + 1, 0.0, offset_sigma))  # a_l
-            if link >= 1:
-                entries.append((base, 0.0, offset_sigma))  # d_l, 2 <= l < L
-        if twists_90:
-            sign = 1.0 if np.sin(kin[base + 2]) >= 0 else -1.0
-            entries.append((base + 2, sign * np.pi / 2.0, NOMINAL_TWIST_SIGMA))
+    if nominal != "orthogonal":
+        sigma = EXACT_OFFSET_SIGMA if nominal == EXACT else NOMINAL_OFFSET_SIGMA
+        entries += [(k, 0.0, sigma) for k in offset_entries(n_joints)]
+    if nominal not in ("intersecting", EXACT):
+        for link in range(n_joints - 1):  # l < L (0-based link < L - 1)
+            alpha = 12 + 3 * link + 2
+            sign = 1.0 if np.sin(kin[alpha]) >= 0 else -1.0
+            entries.append((alpha, sign * np.pi / 2.0, NOMINAL_TWIST_SIGMA))
     return [(free_index[k], v, s) for k, v, s in entries if k in free_index]
 
 

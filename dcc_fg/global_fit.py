@@ -295,4 +295,4 @@ def calibrate_global(
         "spread": spread,
         "starts": report,
     }
-    return select_intersecting(data, best, opt).result
+    return select_intersecting(data, best, opt)

@@ -51,41 +51,20 @@ chi-square units.
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, replace
-from typing import Any
+from dataclasses import replace
 
 import numpy as np
 from scipy.stats import chi2
 
 from dcc_fg.calibrate import CalibrationOptions, CalibrationResult, calibrate, data_cost
 from dcc_fg.data import CalibrationDataset
+from dcc_fg.degeneracy import EXACT, offset_entries
 from dcc_fg.model import GimbalCalibration
 from dcc_fg.util.errors import EstimatorError
 
 log = logging.getLogger("dcc_fg.model_selection")
 ALPHA = 1e-3  # false-rejection probability of the exactly intersecting model (module docstring)
-EXACT = "exactly-intersecting"
 MIN_JOINTS = 3  # two intersecting axes leave one direction, not the bilinear freedom (module docstring)
-
-
-@dataclass
-class Selection:
-    """The outcome of the test: the kept result and the plain-data report (``extra["model_selection"]``)."""
-
-    result: CalibrationResult
-    report: dict[str, Any]
-
-
-def offset_entries(n_joints: int) -> list[int]:
-    """Indices into the kinematic vector of the link offsets that intersecting axes zero:
-    ``a_l`` (l < L) and ``d_l`` (2 <= l < L) (:func:`dcc_fg.degeneracy.nominal_priors`)."""
-    out = []
-    for link in range(n_joints - 1):
-        base = 12 + 3 * link
-        out.append(base + 1)
-        if link >= 1:
-            out.append(base)
-    return sorted(out)
 
 
 def should_test(result: CalibrationResult, options: CalibrationOptions) -> bool:
@@ -119,7 +98,9 @@ def decide(gain_chi2: float, dof: int, alpha: float = ALPHA) -> tuple[bool, floa
     return bool(gain_chi2 <= threshold), threshold
 
 
-def select_intersecting(data: CalibrationDataset, general: CalibrationResult, options: CalibrationOptions) -> Selection:
+def select_intersecting(
+    data: CalibrationDataset, general: CalibrationResult, options: CalibrationOptions
+) -> CalibrationResult:
     """Test the exactly intersecting model against the general solution (module docstring).
 
     ``data``: the images of the general fit (its joint angles become the guesses). Returns the kept
@@ -131,7 +112,7 @@ def select_intersecting(data: CalibrationDataset, general: CalibrationResult, op
         reason = f"not tested (no held directions, --nominal, or L < {MIN_JOINTS})"
         report = {**base, "model": "general", "reason": reason}
         general.extra["model_selection"] = report
-        return Selection(general, report)
+        return general
     guesses = replace(
         data, snapshots=[replace(s, joints=t) for s, t in zip(data.snapshots, general.joint_angles, strict=True)]
     )
@@ -140,7 +121,7 @@ def select_intersecting(data: CalibrationDataset, general: CalibrationResult, op
     except (EstimatorError, ValueError) as exc:
         report = {**base, "model": "general", "reason": f"the exactly intersecting fit failed: {exc}"}
         general.extra["model_selection"] = report
-        return Selection(general, report)
+        return general
     vf = max(float(general.variance_factor), 1e-12)
     gain = 2.0 * (data_cost(exact) - data_cost(general)) / vf
     held = len(exact.extra.get("held_by_prior", []))
@@ -160,7 +141,7 @@ def select_intersecting(data: CalibrationDataset, general: CalibrationResult, op
     general.extra["model_selection"] = report
     general.calibration.statistics["model_selection"] = report
     if not keep_exact:
-        return Selection(general, report)
+        return general
     log.info(
         "the axes intersect within what the images resolve: the general model fits only %.1f chi2 better "
         "(threshold %.1f, %d dof); keeping the exactly intersecting model", gain, threshold, dof,
@@ -183,4 +164,4 @@ def select_intersecting(data: CalibrationDataset, general: CalibrationResult, op
     if "global" in general.calibration.statistics:
         exact.calibration.statistics["global"] = {**general.calibration.statistics["global"], **dropped, "note": note}
     exact.calibration.statistics["model_selection"] = report
-    return Selection(exact, report)
+    return exact

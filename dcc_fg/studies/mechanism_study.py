@@ -62,6 +62,7 @@ from scipy.stats import chi2
 from dcc_fg.calibrate import CalibrationOptions, CalibrationResult, calibrate, corner_sigma
 from dcc_fg.calibration_health import calibration_health
 from dcc_fg.data import CalibrationDataset
+from dcc_fg.degeneracy import EXACT
 from dcc_fg.global_fit import T_ds_differences, calibrate_global, data_cost
 from dcc_fg.io.outputs import plain
 from dcc_fg.model import GimbalCalibration
@@ -542,5 +543,5 @@ def summarize(records: Sequence[MechanismRecord], n_joints: int) -> FamilySummar
         nees_interval_independent=nees_interval(n_snap),
         median_time_s=times,
         failures=[f"seed {r.seed} (L={r.n_joints}): {r.failure}" for r in recs if r.failure],
-        n_exact_model=sum((r.model_selection or {}).get("model") == "exactly-intersecting" for r in recs),
+        n_exact_model=sum((r.model_selection or {}).get("model") == EXACT for r in recs),
     )
