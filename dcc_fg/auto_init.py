@@ -37,6 +37,15 @@ needs both branches) and the translations from the linear solve above, so only t
 parameters are searched, on the translation misfit that remains
 (variable projection, :class:`_ThreeJointProjection`): Levenberg-Marquardt from random starts,
 then the pose-level fit (:func:`dcc_fg.init.pose_level_refine`) from the best distinct minima.
+Those minima are ranked on a cost that weighs every snapshot alike (1 mrad / 1 mm), which does not
+rank the corner-level minima: on nearly degenerate chains the corner-level global minimum lies in a
+basin that no axis-search minimum leads to (random L = 3 family, members 11, 14, 29: the truth
+start's basin had the *highest* equal-weight pose-level RMS of all candidates). Whitened by each
+snapshot's PnP information of ``T_ds`` (:meth:`dcc_fg.noise_floor.NoiseFloor.T_ds_whitening`), the
+pose-level cost is the pose-level image of the corner-level cost and ranks its minima (there the
+truth basin was the lowest). :func:`whitened_hops` therefore refits the candidates on that cost and
+explores it by basin hopping (random perturbations of the kinematics, each refit in ~0.3 s instead of
+~10 s for a corner-level solve); whitened minima deeper than every candidate's become extra starts.
 
 Everything is refined afterwards: the pose-level LM fit, then the corner-level graph.
 Frames and conventions: docs/architecture.md.
@@ -50,9 +59,17 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from dcc_fg.data import CalibrationDataset
-from dcc_fg.init import chordal_mean_rotation, mean_pose, pnp_pose, pose_level_refine
+from dcc_fg.init import (
+    PoseLevelProblem,
+    chordal_mean_rotation,
+    levenberg_marquardt,
+    mean_pose,
+    pnp_pose,
+    pose_level_refine,
+)
 from dcc_fg.joint_motion import check_joint_motion
 from dcc_fg.model import GimbalCalibration
+from dcc_fg.noise_floor import noise_floor
 from dcc_fg.util.errors import stage
 from factors import chain
 
@@ -70,6 +87,18 @@ CANDIDATE_MAX_ITERATIONS = 40
 CANDIDATE_REL_TOL = 1e-6
 SAME_MINIMUM = 1e-4  # rad, m: candidates predicting the same T_ds this closely are one start
 SAME_AXIS_MINIMUM = 1e-5  # L = 3: axis-search minima whose costs agree this closely (relative) are one
+N_HOPS = 60  # L = 3: basin-hopping refits on the whitened pose-level cost
+HOP_FROM = 3  # L = 3: hops start from the best this many whitened minima found so far, in turn
+HOP_ROTATION_SIGMA = 0.15  # rad: perturbation of the rotational kinematic entries (Euler angles, twists)
+HOP_TRANSLATION_SIGMA = 0.01  # m: perturbation of the translational entries (mount offsets, d, a)
+N_HOP_KEEP = 2  # L = 3: at most this many hop minima become extra starts
+# A hop minimum becomes a start when its whitened cost (0.5 chi-square) is below every candidate's by
+# more than this: on members 14 and 29 the whitened cost ranked corner-level minima that lay 2 chi-square
+# or more apart; closer ones it ranked either way.
+HOP_MARGIN = 0.25
+HOP_DISTINCT = 0.05  # two hop minima whose whitened costs agree this closely (0.5 chi-square) are one
+HOP_ITERATIONS = 300  # LM iterations of each whitened refit (~0.3 s for 25 snapshots)
+HOP_REL_TOL = 1e-10  # relative cost decrease that ends a whitened refit
 
 
 def pnp_T_ds(data: CalibrationDataset) -> FloatArray:
@@ -474,6 +503,66 @@ def three_joint_candidates(
     return sorted(out, key=lambda c: c[2])
 
 
+def _rotational_entries(n_joints: int) -> NDArray[np.bool_]:
+    """Mask of the rotational kinematic entries (the Euler angles of both mounts, the twists)."""
+    mask = np.zeros(chain.n_kin(n_joints), dtype=bool)
+    mask[[0, 1, 2, 6, 7, 8]] = True
+    mask[14::3] = True
+    return mask
+
+
+def whitened_hops(
+    fits: list[tuple[FloatArray, FloatArray, float]],
+    T_ds: FloatArray,
+    whitening: FloatArray,
+    free: NDArray[np.bool_],
+    n_hops: int = N_HOPS,
+    seed: int = 0,
+) -> list[tuple[FloatArray, FloatArray, float]]:
+    """L = 3: pose-level minima of the *whitened* cost deeper than every one of ``fits`` (module docstring).
+
+    Each fit is refit on ``sum_i |W_i Log(T_ds_i^-1 T_ds(kin, theta_i))|^2`` (``whitening`` W, (K, 6, 6)),
+    then ``n_hops`` times one of the :data:`HOP_FROM` best minima so far (in turn) has its free
+    kinematic entries perturbed (:data:`HOP_ROTATION_SIGMA`, :data:`HOP_TRANSLATION_SIGMA`) and is
+    refit from its joint angles. Returns up to :data:`N_HOP_KEEP` minima (lowest first, whitened costs
+    at least :data:`HOP_DISTINCT` apart) whose whitened cost is below the best refit of ``fits`` by more
+    than :data:`HOP_MARGIN`, as ``(kin, joint angles (K, 3), equal-weight RMS)`` like ``fits``.
+    """
+
+    def refit(kin: FloatArray, th: FloatArray) -> tuple[FloatArray, FloatArray, float]:
+        problem = PoseLevelProblem(kin, 3, T_ds, th, free, [2], True, 1e-3, 1e-3, whitening)
+        x, r = levenberg_marquardt(problem, HOP_ITERATIONS, HOP_REL_TOL)
+        k, t = problem.unpack(x)
+        data = r[: 6 * problem.K]
+        return k, t.copy(), 0.5 * float(data @ data)
+
+    pool = sorted((refit(kin, th) for kin, th, _ in fits), key=lambda m: m[2])
+    if not pool:
+        return []
+    best_start = pool[0][2]
+    rng = np.random.default_rng(seed)
+    rot = _rotational_entries(3) & free
+    trans = ~_rotational_entries(3) & free
+    for h in range(n_hops):
+        kin, th, _ = pool[h % min(HOP_FROM, len(pool))]
+        kin = kin.copy()
+        kin[rot] += rng.normal(0.0, HOP_ROTATION_SIGMA, int(rot.sum()))
+        kin[trans] += rng.normal(0.0, HOP_TRANSLATION_SIGMA, int(trans.sum()))
+        pool.append(refit(kin, th))
+        pool.sort(key=lambda m: m[2])
+    out: list[tuple[FloatArray, FloatArray, float]] = []
+    costs: list[float] = []
+    for kin, th, cost in pool:
+        if not (np.isfinite(cost) and cost < best_start - HOP_MARGIN) or len(out) >= N_HOP_KEEP:
+            break
+        if all(abs(cost - c) > HOP_DISTINCT for c in costs):
+            equal = PoseLevelProblem(kin, 3, T_ds, th, free, [2], True, 1e-3, 1e-3)
+            r = equal.residual(equal.x0(), False)[0][: 6 * equal.K]
+            out.append((kin, th, float(np.sqrt(r @ r / r.size))))
+            costs.append(cost)
+    return out
+
+
 def _axes_of(kin: FloatArray, T_ds: FloatArray) -> tuple[FloatArray, FloatArray, float]:
     """(w1 in s, b2 in d, cos alpha_1) of L = 2 kinematics in the auto-init gauge (``A_2 = Rz``)."""
     w1 = chain.se3_from_tau(kin[0:6])[2, :3]  # R_bs^T e_z
@@ -560,7 +649,8 @@ def auto_initial_candidates(
     """Distinct starting points of the calibration with no gimbal.yaml, best pose-level fit first.
 
     L = 0, 1: one (closed form); L = 2: the ``N_SCREEN_KEEP`` fits of the axis-plane starts; L = 3:
-    the ``N_L3_KEEP`` best minima of the axis search. :func:`dcc_fg.global_fit.calibrate_global`
+    the ``N_L3_KEEP`` best minima of the axis search, then up to ``N_HOP_KEEP`` minima of the whitened
+    pose-level cost deeper than all of them (:func:`whitened_hops`). :func:`dcc_fg.global_fit.calibrate_global`
     solves the corner-level problem from each and keeps the lowest cost.
 
     Args:
@@ -597,4 +687,7 @@ def auto_initial_candidates(
             fits = two_joint_candidates(T, free)
         else:
             fits = three_joint_candidates(T, free)
+            floor = noise_floor(data)
+            T_floor = floor.T_dt @ np.linalg.inv(floor.T_st)
+            fits += whitened_hops(fits, T_floor, floor.T_ds_whitening(), free)
     return [(GimbalCalibration(kin, n_joints, **cams), th, rms) for kin, th, rms in distinct(fits, n_joints)]

@@ -129,8 +129,10 @@ class PoseLevelProblem:
     """Whitened residuals of the chain against per-snapshot ``T_ds_i`` and their sparse Jacobian.
 
     Unknowns ``x = [free kinematic entries, joint angles (K*L, row-major) when estimated]``. Rows:
-    per snapshot ``W Log(T_ds_measured_i^-1 T_ds(kin, theta_i))`` (6; W = diag(1/sigma_rot x3,
-    1/sigma_trans x3), rad and m), then one gauge row per joint in ``offset_joints``:
+    per snapshot ``W_i Log(T_ds_measured_i^-1 T_ds(kin, theta_i))`` (6; W_i = diag(1/sigma_rot x3,
+    1/sigma_trans x3), rad and m, or the snapshot's ``whitening[i]`` (6, 6) when given, e.g. the
+    square root of its PnP information, :meth:`dcc_fg.noise_floor.NoiseFloor.T_ds_whitening`), then
+    one gauge row per joint in ``offset_joints``:
     ``GAUGE_ROW_WEIGHT * (mean_i theta_ij - mean_i theta0_ij)``. Each snapshot's rows touch the
     free kinematic entries and its own L angles; the gauge rows (``G``, dense over one joint's
     angles) are kept apart and enter the normal equations by the Woodbury identity, so memory stays
@@ -148,6 +150,7 @@ class PoseLevelProblem:
         estimate_theta: bool,
         sigma_rot: float,
         sigma_trans: float,
+        whitening: FloatArray | None = None,
     ) -> None:
         K, L = T_ds_measured.shape[0], n_joints
         self.kin0, self.thetas0, self.n_joints, self.K = kin0, thetas0, L, K
@@ -156,7 +159,10 @@ class PoseLevelProblem:
         self.nf = nf = self.free_idx.size
         self.nt = nt = K * L if estimate_theta else 0
         self.n_local = L if estimate_theta else 0
-        self.w = np.array([1 / sigma_rot] * 3 + [1 / sigma_trans] * 3)
+        w = np.diag([1 / sigma_rot] * 3 + [1 / sigma_trans] * 3)
+        self.W = np.broadcast_to(w, (K, 6, 6)) if whitening is None else np.asarray(whitening, float)
+        if self.W.shape != (K, 6, 6):
+            raise ValueError(f"whitening has shape {self.W.shape}, expected ({K}, 6, 6)")
         self.meas = [gtsam.Pose3(T) for T in T_ds_measured]
         self.mean0 = thetas0.mean(axis=0) if L else np.zeros(0)
         self.rows = np.repeat(np.arange(6 * K), nf + self.n_local)
@@ -180,18 +186,18 @@ class PoseLevelProblem:
     def residual(self, x: FloatArray, jac: bool) -> tuple[FloatArray, sparse.csr_matrix | None]:
         """Whitened residual (6K + gauge rows) and, when ``jac``, the sparse Jacobian of its first 6K rows."""
         kin, th = self.unpack(x)
-        K, L, nf, w = self.K, self.n_joints, self.nf, self.w
+        K, L, nf, W = self.K, self.n_joints, self.nf, self.W
         r = np.zeros(6 * K + self.G.shape[0])
         blocks = np.zeros((K, 6, nf + self.n_local)) if jac else None
         if blocks is None:
             T = chain.T_ds_batch(kin, th, L)
         else:
             T, Jk, Jt = chain.d_T_ds_tangent_batch(kin, th, L)
-            blocks[:, :, :nf] = w[:, None] * Jk[:, :, self.free_idx]
+            blocks[:, :, :nf] = W @ Jk[:, :, self.free_idx]
             if self.estimate_theta:
-                blocks[:, :, nf:] = w[:, None] * Jt
+                blocks[:, :, nf:] = W @ Jt
         for i in range(K):
-            r[6 * i : 6 * i + 6] = w * self.meas[i].localCoordinates(gtsam.Pose3(T[i]))
+            r[6 * i : 6 * i + 6] = W[i] @ self.meas[i].localCoordinates(gtsam.Pose3(T[i]))
         for row, j in enumerate(self.gauge_joints):
             r[6 * K + row] = GAUGE_ROW_WEIGHT * (th[:, j].mean() - self.mean0[j])
         if blocks is None:
@@ -260,6 +266,7 @@ def pose_level_refine(
     sigma_trans: float = 1e-3,
     max_iterations: int = 200,
     rel_tol: float = 1e-12,
+    whitening: FloatArray | None = None,
 ) -> tuple[FloatArray, FloatArray, float]:
     """Fit the chain to per-snapshot PnP transforms ``T_ds_i = T_dt_i inv(T_st_i)``.
 
@@ -270,9 +277,10 @@ def pose_level_refine(
 
     Returns ``(kin, thetas, rms)`` where ``rms`` is the RMS of the whitened residual per row.
     ``rel_tol``: relative cost decrease that stops the solve (:func:`levenberg_marquardt`).
+    ``whitening``: (K, 6, 6) per-snapshot whitening instead of W (:class:`PoseLevelProblem`).
     """
     problem = PoseLevelProblem(
-        kin0, n_joints, T_ds_measured, thetas0, free, offset_joints, estimate_theta, sigma_rot, sigma_trans
+        kin0, n_joints, T_ds_measured, thetas0, free, offset_joints, estimate_theta, sigma_rot, sigma_trans, whitening
     )
     x, r = levenberg_marquardt(problem, max_iterations, rel_tol)
     kin, th = problem.unpack(x)

@@ -104,6 +104,17 @@ def refine_poses(
     return T, ss, A
 
 
+def _adjoint(T: FloatArray) -> FloatArray:
+    """(M, 6, 6) adjoint maps of poses (M, 4, 4) for ``[omega, v]`` twists: ``[[R, 0], [t^ R, R]]``."""
+    R, t = T[:, :3, :3], T[:, :3, 3]
+    tx = np.zeros((len(T), 3, 3))
+    tx[:, 0, 1], tx[:, 0, 2], tx[:, 1, 2] = -t[:, 2], t[:, 1], -t[:, 0]
+    tx[:, 1, 0], tx[:, 2, 0], tx[:, 2, 1] = t[:, 2], -t[:, 1], t[:, 0]
+    Ad = np.zeros((len(T), 6, 6))
+    Ad[:, :3, :3], Ad[:, 3:, 3:], Ad[:, 3:, :3] = R, R, tx @ R
+    return Ad
+
+
 @dataclass
 class NoiseFloor:
     """The model-independent noise floor: per snapshot a free target pose in each camera.
@@ -123,19 +134,36 @@ class NoiseFloor:
     info_st: FloatArray
     info_dt: FloatArray
 
-    def T_ds_covariance(self, i_static: NDArray[np.int64], i_dynamic: NDArray[np.int64]) -> FloatArray:
+    def T_ds_covariance(
+        self,
+        i_static: NDArray[np.int64],
+        i_dynamic: NDArray[np.int64],
+        variances: tuple[float, float] | None = None,
+    ) -> FloatArray:
         """(M, 6, 6) covariances of the left perturbation ``[omega, v]`` of ``T_ds = T_dt[j] inv(T_st[i])``
-        for the pairs (i, j): ``C_d + Ad(T_ds) C_s Ad(T_ds)^T`` with each pose's ``s2 (J^T J)^-1``."""
-        C_s = self.variance(0) * np.linalg.inv(self.info_st[i_static] + 1e-12 * np.eye(6))
-        C_d = self.variance(1) * np.linalg.inv(self.info_dt[i_dynamic] + 1e-12 * np.eye(6))
-        T_ds = self.T_dt[i_dynamic] @ np.linalg.inv(self.T_st[i_static])
-        Ad = np.zeros((len(T_ds), 6, 6))
-        R, t = T_ds[:, :3, :3], T_ds[:, :3, 3]
-        tx = np.zeros((len(T_ds), 3, 3))
-        tx[:, 0, 1], tx[:, 0, 2], tx[:, 1, 2] = -t[:, 2], t[:, 1], -t[:, 0]
-        tx[:, 1, 0], tx[:, 2, 0], tx[:, 2, 1] = t[:, 2], -t[:, 1], t[:, 0]
-        Ad[:, :3, :3], Ad[:, 3:, 3:], Ad[:, 3:, :3] = R, R, tx @ R
+        for the pairs (i, j): ``C_d + Ad(T_ds) C_s Ad(T_ds)^T`` with each pose's ``s2 (J^T J)^-1``
+        (``s2``: ``variances`` of the [static, dynamic] corners, px^2; default each camera's floor variance)."""
+        v_s, v_d = (self.variance(0), self.variance(1)) if variances is None else variances
+        C_s = v_s * np.linalg.inv(self.info_st[i_static] + 1e-12 * np.eye(6))
+        C_d = v_d * np.linalg.inv(self.info_dt[i_dynamic] + 1e-12 * np.eye(6))
+        Ad = _adjoint(self.T_dt[i_dynamic] @ np.linalg.inv(self.T_st[i_static]))
         return C_d + Ad @ C_s @ np.transpose(Ad, (0, 2, 1))
+
+    def T_ds_whitening(self) -> FloatArray:
+        """(K, 6, 6) per snapshot an upper-triangular ``W_i`` with ``W_i^T W_i`` the information of
+        ``T_ds_i = T_dt_i inv(T_st_i)`` in the *right* perturbation ``[omega, v]`` (rad, m; gtsam's
+        ``Pose3.localCoordinates`` at ``T_ds_i``): ``Ad^T C^-1 Ad`` with ``C`` the left-perturbation
+        covariance of :meth:`T_ds_covariance` and ``Ad = Ad(T_ds_i)`` (the left perturbation ``Ad xi``
+        is the right one ``xi``). ``|W_i Log(T_ds_i^-1 T)|^2`` is then the chi-square of a chain's ``T``
+        against the two images' poses: the pose-level image of the corner-level cost. A noiseless floor
+        (variance below :data:`NOISELESS_VARIANCE`) uses unit pixel variances."""
+        idx = np.arange(len(self.T_st))
+        v = (self.variance(0), self.variance(1))
+        C = self.T_ds_covariance(idx, idx, None if min(v) >= NOISELESS_VARIANCE else (1.0, 1.0))
+        Ad = _adjoint(self.T_dt @ np.linalg.inv(self.T_st))
+        info = np.transpose(Ad, (0, 2, 1)) @ np.linalg.inv(C) @ Ad
+        info = 0.5 * (info + np.transpose(info, (0, 2, 1)))
+        return np.transpose(np.linalg.cholesky(info), (0, 2, 1))
 
     def dof(self, cam: int) -> int:
         """Degrees of freedom of camera ``cam``'s floor: 2 N - 6 per image."""
