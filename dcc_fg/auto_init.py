@@ -38,14 +38,17 @@ parameters are searched, on the translation misfit that remains
 (variable projection, :class:`_ThreeJointProjection`): Levenberg-Marquardt from random starts,
 then the pose-level fit (:func:`dcc_fg.init.pose_level_refine`) from the best distinct minima.
 Those minima are ranked on a cost that weighs every snapshot alike (1 mrad / 1 mm), which does not
-rank the corner-level minima: on nearly degenerate chains the corner-level global minimum lies in a
-basin that no axis-search minimum leads to (random L = 3 family, members 11, 14, 29: the truth
-start's basin had the *highest* equal-weight pose-level RMS of all candidates). Whitened by each
-snapshot's PnP information of ``T_ds`` (:meth:`dcc_fg.noise_floor.NoiseFloor.T_ds_whitening`), the
-pose-level cost is the pose-level image of the corner-level cost and ranks its minima (there the
-truth basin was the lowest). :func:`whitened_hops` therefore refits the candidates on that cost and
-explores it by basin hopping (random perturbations of the kinematics, each refit in ~0.3 s instead of
-~10 s for a corner-level solve); whitened minima deeper than every candidate's become extra starts.
+rank the corner-level minima: on nearly degenerate chains the corner-level global minimum can lie in
+a basin that no kept axis-search minimum leads to (random L = 3 family, rendered members 11, 14, 29:
+the pose-level fit started from the truth had a higher equal-weight RMS than the best candidate,
+0.517 / 0.804 / 0.307 vs 0.507 / 0.755 / 0.281, yet led to the lowest corner-level cost). Whitened by
+each snapshot's PnP information of ``T_ds`` (:meth:`dcc_fg.noise_floor.NoiseFloor.T_ds_whitening`), the
+pose-level cost is the pose-level image of the corner-level cost and ranks its minima (there the truth
+start's whitened minimum was the lowest of all on members 11 and 14, and on 29 second, 0.7 above a
+minimum that is 1.8 chi-square worse at the corner level). :func:`whitened_hops` therefore refits the
+candidates on that cost and explores it by basin hopping (random perturbations of the kinematics, each
+refit in ~0.3 s instead of ~10 s for a corner-level solve); whitened minima deeper than every
+candidate's become extra starts.
 
 Everything is refined afterwards: the pose-level LM fit, then the corner-level graph.
 Frames and conventions: docs/architecture.md.
@@ -92,9 +95,12 @@ HOP_FROM = 3  # L = 3: hops start from the best this many whitened minima found 
 HOP_ROTATION_SIGMA = 0.15  # rad: perturbation of the rotational kinematic entries (Euler angles, twists)
 HOP_TRANSLATION_SIGMA = 0.01  # m: perturbation of the translational entries (mount offsets, d, a)
 N_HOP_KEEP = 2  # L = 3: at most this many hop minima become extra starts
-# A hop minimum becomes a start when its whitened cost (0.5 chi-square) is below every candidate's by
-# more than this: on members 14 and 29 the whitened cost ranked corner-level minima that lay 2 chi-square
-# or more apart; closer ones it ranked either way.
+# A hop minimum becomes a start (one more corner-level solve, ~10 s) when its whitened cost (0.5 chi-square)
+# is below every candidate's by more than this. The whitened cost ranks the corner-level minima only
+# roughly (rendered members 11, 14, 29: the truth start's minimum lowest or second; on member 14 two
+# candidates 8.8 chi-square apart at the corner level were ranked the other way, 8 apart in the whitened
+# cost), so a hop
+# minimum not clearly deeper than a candidate is most likely that candidate's basin again.
 HOP_MARGIN = 0.25
 HOP_DISTINCT = 0.05  # two hop minima whose whitened costs agree this closely (0.5 chi-square) are one
 HOP_ITERATIONS = 300  # LM iterations of each whitened refit (~0.3 s for 25 snapshots)

@@ -8,7 +8,8 @@ problem (:func:`dcc_fg.calibrate.calibrate`) from every distinct start it has:
 * the hand-measured kinematics (``--gimbal``), when given;
 * each of the automatic initialization's distinct pose-level minima
   (:func:`dcc_fg.auto_init.auto_initial_candidates`: one for L <= 1, the axis-plane fits for L = 2,
-  the best axis-search minima for L = 3);
+  the best axis-search minima for L = 3, and the deeper minima of the whitened pose-level cost
+  that :func:`dcc_fg.auto_init.whitened_hops` finds);
 
 and keeps the solution with the lowest *data* cost (pixel residuals only: the weak priors of
 :mod:`dcc_fg.degeneracy` sit at each start's own values, so they do not take part in the
