@@ -99,8 +99,7 @@ N_HOP_KEEP = 2  # L = 3: at most this many hop minima become extra starts
 # is below every candidate's by more than this. The whitened cost ranks the corner-level minima only
 # roughly (rendered members 11, 14, 29: the truth start's minimum lowest or second; on member 14 two
 # candidates 8.8 chi-square apart at the corner level were ranked the other way, 8 apart in the whitened
-# cost), so a hop
-# minimum not clearly deeper than a candidate is most likely that candidate's basin again.
+# cost), so a hop minimum not clearly deeper than a candidate is most likely that candidate's basin again.
 HOP_MARGIN = 0.25
 HOP_DISTINCT = 0.05  # two hop minima whose whitened costs agree this closely (0.5 chi-square) are one
 HOP_ITERATIONS = 300  # LM iterations of each whitened refit (~0.3 s for 25 snapshots)
