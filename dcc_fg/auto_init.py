@@ -56,6 +56,8 @@ Frames and conventions: docs/architecture.md.
 
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import least_squares
@@ -77,6 +79,7 @@ from dcc_fg.util.errors import stage
 from factors import chain
 
 FloatArray = NDArray[np.float64]
+log = logging.getLogger("dcc_fg.auto_init")
 N_AXIS_STARTS = 4  # L = 2: starting joint-1 axes in the principal rotation plane
 SCREEN_ITERATIONS = 30  # L = 2: pose-level LM iterations of the short fit that ranks the starts
 N_SCREEN_KEEP = 2  # L = 2: starts carried on to the full pose-level fit
@@ -694,5 +697,9 @@ def auto_initial_candidates(
             fits = three_joint_candidates(T, free)
             floor = noise_floor(data)
             T_floor = floor.T_dt @ np.linalg.inv(floor.T_st)
-            fits += whitened_hops(fits, T_floor, floor.T_ds_whitening(), free)
+            try:  # extra starts only: without a usable whitening the axis-search candidates remain
+                fits += whitened_hops(fits, T_floor, floor.T_ds_whitening(), free)
+            except np.linalg.LinAlgError as exc:
+                log.warning("no basin hopping on the whitened pose-level cost (%s): the PnP information of "
+                            "some image pair is singular; the axis-search starts remain", exc)  # fmt: skip
     return [(GimbalCalibration(kin, n_joints, **cams), th, rms) for kin, th, rms in distinct(fits, n_joints)]

@@ -5,19 +5,30 @@
 * ``PoseLevelProblem`` with a per-snapshot whitening: the Jacobian against central differences, and
   the diagonal whitening reproduces the 1 mrad / 1 mm default.
 * ``auto_init.whitened_hops``: what it returns is deeper than every candidate by the margin, and
-  nothing when the candidate already is the deepest minimum.
+  nothing when the candidate already is the deepest minimum; a singular whitening leaves the
+  axis-search starts, with a warning.
 """
 
 from __future__ import annotations
+
+import logging
 
 import gtsam
 import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from dcc_fg.auto_init import HOP_DISTINCT, HOP_MARGIN, N_HOP_KEEP, pnp_T_ds, three_joint_candidates, whitened_hops
+from dcc_fg.auto_init import (
+    HOP_DISTINCT,
+    HOP_MARGIN,
+    N_HOP_KEEP,
+    auto_initial_candidates,
+    pnp_T_ds,
+    three_joint_candidates,
+    whitened_hops,
+)
 from dcc_fg.init import PoseLevelProblem, levenberg_marquardt
-from dcc_fg.noise_floor import noise_floor
+from dcc_fg.noise_floor import NoiseFloor, noise_floor
 from dcc_fg.sim.calibration_scene import SceneConfig, simulate_calibration
 from dcc_fg.sim.mechanism_family import family_member, simulate_member
 from factors import chain
@@ -138,3 +149,18 @@ def test_hops_return_nothing_when_no_minimum_is_deeper(scene_l3) -> None:
     x, _ = levenberg_marquardt(p, 300, 1e-14)
     kin, th = p.unpack(x)
     assert whitened_hops([(kin, th.copy(), 1.0)], T, W, free, n_hops=20, seed=0) == []
+
+
+def test_a_singular_whitening_leaves_the_axis_search_starts(monkeypatch, caplog) -> None:
+    """When the whitening cannot be factored (a singular PnP information), the automatic initialization
+    warns and returns the axis-search candidates alone instead of failing."""
+    sim = simulate_calibration(4, SceneConfig(n_joints=3, n_calibration=12, n_validation=1))
+
+    def singular(self):
+        raise np.linalg.LinAlgError("Matrix is not positive definite")
+
+    monkeypatch.setattr(NoiseFloor, "T_ds_whitening", singular)
+    with caplog.at_level(logging.WARNING, logger="dcc_fg.auto_init"):
+        candidates = auto_initial_candidates(sim.calibration_set, 3)
+    assert candidates and all(np.isfinite(rms) for _, _, rms in candidates)
+    assert "no basin hopping on the whitened pose-level cost" in caplog.text
