@@ -50,6 +50,7 @@ from numpy.typing import NDArray
 
 from dcc_fg.calibration_graph import (
     CalibrationProblem,
+    GraphSolution,
     SolutionArrays,
     build_graph,
     gauge_fixed_joint_offsets,
@@ -76,6 +77,7 @@ from dcc_fg.init import joint_angles_from_T_ds, pnp_pose, robust_pose_level_init
 from dcc_fg.joint_motion import FLAT_JOINT_SPAN_RAD, check_joint_motion, never_moves
 from dcc_fg.model import GimbalCalibration
 from dcc_fg.noise_floor import noise_floor, relative_image_noise
+from dcc_fg.projection import projected_solve
 from dcc_fg.util.errors import EstimatorError, stage
 from factors import chain
 from factors.calibration import RobustLoss, SnapshotMeasurements
@@ -134,6 +136,11 @@ class CalibrationOptions:
             to Levenberg-Marquardt in each solve and keep the lower error (off by default: it ends
             lower where Levenberg-Marquardt crawls on nearly degenerate 3-joint chains, but changed
             none of the four L = 3 study members that miss the global minimum; see the README).
+        project_held: when directions are held by the weak prior, finish with the projected solve
+            (:func:`projected_polish`): Levenberg-Marquardt on the kinematics with the per-snapshot
+            variables re-solved at every step, on the data without the weak prior, which reaches the
+            bottom of the curved valley the joint solve crawls along (off by default: ~0.1 s per step,
+            up to 300 steps; :func:`dcc_fg.global_fit.calibrate_global` runs it on its best solution).
     """
 
     mode: str = "encoderless"
@@ -146,6 +153,7 @@ class CalibrationOptions:
     compute_covariance: bool = True
     nominal: str | None = None
     gauss_newton: bool = False
+    project_held: bool = False
 
     def __post_init__(self) -> None:
         if self.nominal is not None and self.nominal not in NOMINALS:
@@ -546,13 +554,17 @@ def calibrate(
     held = hold_degenerate_directions(problem, opt.nominal)
     graph, values = build_graph(problem)
     weak_graph = gtsam.NonlinearFactorGraph()  # the data with the weakened held prior: polish and covariances
+    data_graph = gtsam.NonlinearFactorGraph()  # the data without the held prior: the projected solve
     for i in range(graph.size()):
         weak_graph.add(graph.at(i))  # the same data factors, shared
+        data_graph.add(graph.at(i))
     if problem.kin_key is not None:
         for factor in held.factors(problem.kin_key):
             graph.add(factor)
         for factor in held.factors(problem.kin_key, COVARIANCE_PRIOR_WEAKENING):
             weak_graph.add(factor)
+        for factor in held.nominal_factors(problem.kin_key):
+            data_graph.add(factor)
     dims = variable_dims(problem) if opt.gauss_newton else None
     solved = solve_graph(graph, values, opt.max_iterations, dims)
     polish_note = ""
@@ -564,6 +576,9 @@ def calibrate(
         except EstimatorError as exc:  # keep the solution with the full-strength prior, and say so
             polish_note = f"the polish with the weakened prior on the held directions failed ({exc})"
             logger.warning("%s; the result keeps the full-strength prior", polish_note)
+    projection: dict[str, Any] | None = None
+    if held.count and problem.kin_key is not None and opt.project_held:
+        solved, projection = projected_polish(data_graph, weak_graph, solved, variable_dims(problem))
     sol = solution_arrays(problem, solved.values)
     res_s, res_d = pixel_residuals(problem, sol)
     variance_factor = variance_factor_of(problem, res_s, res_d, opt.pixel_sigma is not None, held.count)
@@ -605,6 +620,8 @@ def calibrate(
         out.extra["held_by_prior"] = held.report()
         out.extra["held_by_prior_text"] = held.plain_words()
         out.extra["held_polish"] = polish_note or "polished with the weakened prior"
+    if projection is not None:
+        out.extra["held_projection"] = projection
     if held.nominal:
         out.extra["nominal"] = opt.nominal
     # for the health checks (dcc_fg.calibration_health): the per-image PnP poses of both cameras and
@@ -620,6 +637,33 @@ def calibrate(
     }
     cal.statistics = summary_statistics(out)
     return out
+
+
+def projected_polish(
+    data_graph: gtsam.NonlinearFactorGraph,
+    weak_graph: gtsam.NonlinearFactorGraph,
+    solved: GraphSolution,
+    dims: list[tuple[int, int]],
+) -> tuple[GraphSolution, dict[str, Any]]:
+    """The solution moved to the bottom of the valley of the held directions: the projected solve
+    (:func:`dcc_fg.projection.projected_solve`) of ``data_graph`` (the data, the gauge and the nominal
+    priors, no weak prior) from ``solved``; kept when it lowers that error. Returns the kept solution
+    and a report (errors in GTSAM units, steps, converged, kept; ``error`` when the solve failed)."""
+    before = float(data_graph.error(solved.values))
+    report: dict[str, Any] = {"data_error_before": before}
+    try:
+        projected = projected_solve(data_graph, solved.values, dims)
+    except (ValueError, RuntimeError, np.linalg.LinAlgError) as exc:
+        logger.warning("the projected solve along the held directions failed (%s); the polished solution is kept", exc)
+        return solved, {**report, "error": str(exc), "kept": False}
+    kept = bool(projected.final_error < before)
+    report.update(
+        data_error_after=float(projected.final_error), steps=projected.steps, converged=projected.converged, kept=kept
+    )
+    if not kept:
+        return solved, report
+    final_error = float(weak_graph.error(projected.values))
+    return replace(solved, values=projected.values, final_error=final_error), report
 
 
 def image_sigma_of(res: CalibrationResult) -> FloatArray:

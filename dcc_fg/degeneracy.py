@@ -102,18 +102,19 @@ class HeldDirections:
     def factors(self, key: int, weakening: float = 1.0) -> list[gtsam.CustomFactor]:
         """The weak prior on the held directions (its 1-sigma times ``weakening``) and the nominal
         priors, on the free-kinematics key."""
-        out = []
-        if self.count:
-            out.append(linear_prior_factor(key, self.W / weakening, self.x0))
-        if self.nominal:
-            n = len(self.names)
-            rows = np.zeros((len(self.nominal), n))
-            target = self.x0.copy()
-            for r, (i, value, sigma) in enumerate(self.nominal):
-                rows[r, i] = 1.0 / sigma
-                target[i] = value
-            out.append(linear_prior_factor(key, rows, target))
-        return out
+        out = [linear_prior_factor(key, self.W / weakening, self.x0)] if self.count else []
+        return out + self.nominal_factors(key)
+
+    def nominal_factors(self, key: int) -> list[gtsam.CustomFactor]:
+        """The nominal-geometry priors alone (none without ``--nominal``), on the free-kinematics key."""
+        if not self.nominal:
+            return []
+        rows = np.zeros((len(self.nominal), len(self.names)))
+        target = self.x0.copy()
+        for r, (i, value, sigma) in enumerate(self.nominal):
+            rows[r, i] = 1.0 / sigma
+            target[i] = value
+        return [linear_prior_factor(key, rows, target)]
 
     def report(self) -> list[dict[str, Any]]:
         """Plain-data description of each held direction (for ``calibration.yaml``): the parameters

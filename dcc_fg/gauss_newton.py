@@ -72,7 +72,8 @@ def gauss_newton_step(H: FloatArray, eta: FloatArray) -> FloatArray:
     return scaled_pseudo_inverse(H) @ eta
 
 
-def _retract(values: gtsam.Values, dims: Sequence[tuple[int, int]], dx: FloatArray) -> gtsam.Values:
+def retract(values: gtsam.Values, dims: Sequence[tuple[int, int]], dx: FloatArray) -> gtsam.Values:
+    """``values`` moved by the stacked tangent step ``dx`` (in the order of ``dims``)."""
     delta = gtsam.VectorValues()
     at = 0
     for key, dim in dims:
@@ -107,7 +108,7 @@ def gauss_newton(
         dx = gauss_newton_step(H, eta)
         step, trial, trial_error = 1.0, values, error
         while step >= MIN_STEP:
-            trial = _retract(values, dims, step * dx)
+            trial = retract(values, dims, step * dx)
             trial_error = graph.error(trial)
             if np.isfinite(trial_error) and trial_error < error:
                 break

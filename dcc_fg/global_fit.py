@@ -204,6 +204,33 @@ def _farthest(amb: dict[str, Any]) -> tuple[float, float]:
     return (m2 if np.isfinite(m2) else -1.0, amb["rotation_rms_rad"] + amb["translation_rms_m"])
 
 
+def projected_rerun(
+    start: Start, best: CalibrationResult, opt: CalibrationOptions, report: list[dict[str, Any]]
+) -> CalibrationResult:
+    """The best solution, when it holds directions by prior, solved again from its start with the
+    projected solve at the end (``project_held``, :func:`dcc_fg.calibrate.projected_polish`): the
+    joint solve stops in the curved valley of the held directions short of its bottom, and the search
+    must compare bottoms. Kept when its data cost is lower; recorded in ``report`` either way."""
+    name = f"{start.name}, projected"
+    try:
+        res = calibrate(start.data, start.initial, replace(opt, project_held=True))
+    except (EstimatorError, ValueError) as exc:
+        report.append({"start": name, "pose_level_rms": start.pose_level_rms, "error": str(exc)})
+        return best
+    report.append(
+        {
+            "start": name,
+            "pose_level_rms": start.pose_level_rms,
+            "data_cost": data_cost(res),
+            "final_error": float(res.final_error),
+            "iterations": int(res.iterations),
+            "time_s": float(res.solve_time_s),
+            "projection": res.extra.get("held_projection"),
+        }
+    )
+    return res if data_cost(res) < data_cost(best) else best
+
+
 def calibrate_global(
     data: CalibrationDataset,
     n_joints: int,
@@ -260,6 +287,10 @@ def calibrate_global(
         assert first_error is not None
         raise first_error
     best_start, best = min(results, key=lambda sr: data_cost(sr[1]))
+    if best.extra.get("held_by_prior") and not opt.project_held:
+        projected = projected_rerun(best_start, best, opt, report)
+        results = [(s, projected if r is best else r) for s, r in results]
+        best = projected
     plausible = []  # the other solutions inside the likelihood-ratio region, with their T_ds difference
     for start, res in results:
         if res is best:

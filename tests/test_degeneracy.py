@@ -30,9 +30,10 @@ from factors.calibration import linear_prior_factor
 SIGMA = 0.3  # px, corner noise of the corner-level scenes here
 
 
-def spherical_wrist(seed: int, n_snapshots: int = 20) -> SimulatedCalibration:
+def spherical_wrist(seed: int, n_snapshots: int = 20, offset_m: float = 0.0) -> SimulatedCalibration:
     """A yaw-roll-pitch gimbal whose three axes intersect in one point (DH a = d = 0 but d_1, twists
-    +-90 deg), joint 2 clear of gimbal lock (centred at 90 deg), random base mount."""
+    +-90 deg), joint 2 clear of gimbal lock (centred at 90 deg), random base mount. ``offset_m > 0``:
+    the axes miss each other by random link offsets (a_1, a_2, d_2) up to that many metres."""
     rng = np.random.default_rng(seed)
     q = rng.normal(size=4)
     R_bs = gtsam.Rot3.Quaternion(*(q / np.linalg.norm(q))).matrix()
@@ -46,6 +47,8 @@ def spherical_wrist(seed: int, n_snapshots: int = 20) -> SimulatedCalibration:
     half = np.deg2rad([25.0, 20.0, 25.0])
     T_ds_mid = np.eye(4)
     T_ds_mid[:3, 3] = [-0.10, 0.0, 0.0]
+    if offset_m > 0.0:  # drawn last: the intersecting scenes keep their random streams
+        dh[0, 1], dh[1, 0], dh[1, 1] = rng.uniform(-offset_m, offset_m, size=3)
     truth = mechanism_with_camera_at(chain.tau_from_se3(T_bs), dh, centre, T_ds_mid)
     ranges = np.column_stack([centre - half, centre + half])
     cfg = SceneConfig(n_calibration=n_snapshots, n_validation=1, pixel_sigma=SIGMA)

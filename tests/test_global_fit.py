@@ -167,3 +167,33 @@ def test_covering_covariance_has_every_plausible_solution_within_one_sigma() -> 
             m2 = [x @ np.linalg.pinv(C[k], rcond=1e-12) @ x for x in D[:, k]]
             assert max(m2) == pytest.approx(1.0, rel=1e-6) and min(m2) > 0.0
     assert not np.any(gf.covering_covariance(np.zeros((3, 2, 6))))
+
+
+@pytest.mark.parametrize("scale, kept", [(0.9, True), (1.1, False)])
+def test_a_best_solution_with_held_directions_is_solved_again_with_the_projected_solve(
+    monkeypatch, scale: float, kept: bool
+) -> None:  # noqa: ANN001
+    """The best start is rerun with ``project_held`` when it holds directions by prior; the rerun is
+    kept only when its data cost is lower, and recorded among the starts either way."""
+    sim = simulate_calibration(2, SceneConfig(n_calibration=12, n_validation=1))
+    real = gf.calibrate
+    options_seen = []
+
+    def fake(data, initial, opt):  # noqa: ANN001, ANN202
+        options_seen.append(opt.project_held)
+        res = real(data, initial, replace(opt, project_held=False))
+        extra = {**res.extra, "held_by_prior": [{"parameters": ["dh1.alpha"]}]}
+        if opt.project_held:  # the projected rerun "ends" lower (scale < 1) or higher
+            res = replace(res, residuals_static=[r * scale for r in res.residuals_static])
+            extra["held_projection"] = {"kept": True}
+        return replace(res, extra=extra)
+
+    monkeypatch.setattr(gf, "calibrate", fake)
+    opt = CalibrationOptions(compute_covariance=False)
+    res = calibrate_global(sim.calibration_set, 2, opt, initial=sim.initial, automatic=False)
+    assert options_seen == [False, True]
+    starts = res.extra["global"]["starts"]
+    assert [s["start"] for s in starts] == ["gimbal.yaml", "gimbal.yaml, projected"]
+    assert starts[1]["projection"] == {"kept": True}
+    assert (data_cost(res) < starts[0]["data_cost"]) == kept
+    assert data_cost(res) == pytest.approx(min(s["data_cost"] for s in starts), rel=1e-12)

@@ -45,6 +45,7 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
             "dcc_fg.time_offset",
             "dcc_fg.degeneracy",
             "dcc_fg.gauss_newton",
+            "dcc_fg.projection",
             "dcc_fg.joint_motion",
             "dcc_fg.intrinsics",
             "dcc_fg.intrinsics_health",
