@@ -663,7 +663,9 @@ def projected_polish(
     if not kept:
         return solved, report
     final_error = float(weak_graph.error(projected.values))
-    return replace(solved, values=projected.values, final_error=final_error), report
+    # a converged projected solve ends where the joint solve's remaining decrease no longer applies
+    next_decrease = float("nan") if projected.converged else solved.next_decrease
+    return replace(solved, values=projected.values, final_error=final_error, next_decrease=next_decrease), report
 
 
 def image_sigma_of(res: CalibrationResult) -> FloatArray:

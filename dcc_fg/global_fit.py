@@ -13,7 +13,11 @@ problem (:func:`dcc_fg.calibrate.calibrate`) from every distinct start it has:
 
 and keeps the solution with the lowest *data* cost (pixel residuals only: the weak priors of
 :mod:`dcc_fg.degeneracy` sit at each start's own values, so they do not take part in the
-comparison).
+comparison). When that solution holds directions by the weak prior, its start is solved again with the
+projected solve at the end (:func:`projected_rerun`, :mod:`dcc_fg.projection`): the joint solve stops
+in the curved valley of those directions short of its bottom (random L = 3 family: 40 of 50 members
+solved again, all ended lower, by a median 2.7e-5 and at most 2.5e-3 of the data cost; member 26 went
+from 2e-5 above the truth start's cost to below it).
 
 Uniqueness. Another solution whose data cost is within the chi-square threshold of the best one,
 ``2 (c_j - c_best) / s^2 < chi2_0.95(p)`` (``s^2`` the a-posteriori variance factor), fits the images
