@@ -662,6 +662,12 @@ def projected_polish(
     )
     if not kept:
         return solved, report
+    if not projected.converged:
+        logger.warning(
+            "the projected solve along the held directions stopped on its cap of %d steps while still descending "
+            "(data error %.6g -> %.6g): the solution may lie short of the bottom of their valley",
+            projected.steps, before, projected.final_error,
+        )  # fmt: skip
     final_error = float(weak_graph.error(projected.values))
     # a converged projected solve ends where the joint solve's remaining decrease no longer applies
     next_decrease = float("nan") if projected.converged else solved.next_decrease

@@ -20,8 +20,8 @@ from dcc_fg.model import GimbalCalibration, load_calibration
 from dcc_fg.sim.calibration_scene import (
     SceneConfig,
     SimulatedCalibration,
-    mechanism_with_camera_at,
     simulate_calibration,
+    yaw_roll_pitch_gimbal,
 )
 from dcc_fg.studies.calibration_accuracy import T_ds_errors, cramer_rao_bound, nees_T_ds
 from factors import chain
@@ -31,28 +31,9 @@ SIGMA = 0.3  # px, corner noise of the corner-level scenes here
 
 
 def spherical_wrist(seed: int, n_snapshots: int = 20, offset_m: float = 0.0) -> SimulatedCalibration:
-    """A yaw-roll-pitch gimbal whose three axes intersect in one point (DH a = d = 0 but d_1, twists
-    +-90 deg), joint 2 clear of gimbal lock (centred at 90 deg), random base mount. ``offset_m > 0``:
-    the axes miss each other by random link offsets (a_1, a_2, d_2) up to that many metres."""
-    rng = np.random.default_rng(seed)
-    q = rng.normal(size=4)
-    R_bs = gtsam.Rot3.Quaternion(*(q / np.linalg.norm(q))).matrix()
-    T_bs = np.eye(4)
-    T_bs[:3, :3] = R_bs
-    T_bs[:3, 3] = -R_bs @ (np.array([0.08, 0.0, 0.0]) + rng.uniform(-0.02, 0.02, size=3))
-    dh = np.zeros((3, 3))
-    dh[0, 0] = rng.uniform(-0.03, 0.03)
-    dh[:, 2] = rng.choice([-1.0, 1.0], size=3) * np.pi / 2
-    centre = np.array([rng.uniform(-np.pi, np.pi), np.pi / 2, rng.uniform(-np.pi, np.pi)])
-    half = np.deg2rad([25.0, 20.0, 25.0])
-    T_ds_mid = np.eye(4)
-    T_ds_mid[:3, 3] = [-0.10, 0.0, 0.0]
-    if offset_m > 0.0:  # drawn last: the intersecting scenes keep their random streams
-        dh[0, 1], dh[1, 0], dh[1, 1] = rng.uniform(-offset_m, offset_m, size=3)
-    truth = mechanism_with_camera_at(chain.tau_from_se3(T_bs), dh, centre, T_ds_mid)
-    ranges = np.column_stack([centre - half, centre + half])
-    cfg = SceneConfig(n_calibration=n_snapshots, n_validation=1, pixel_sigma=SIGMA)
-    return simulate_calibration(seed, cfg, mechanism=(truth, ranges))
+    """The yaw-roll-pitch gimbal of :func:`dcc_fg.sim.calibration_scene.yaw_roll_pitch_gimbal` at
+    :data:`SIGMA` px (``offset_m > 0``: axes that miss each other by up to that many metres)."""
+    return yaw_roll_pitch_gimbal(seed, n_snapshots, offset_m, SIGMA)
 
 
 def with_true_angles(sim: SimulatedCalibration):  # noqa: ANN201

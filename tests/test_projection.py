@@ -5,6 +5,7 @@ at or below the joint solve's data cost."""
 
 from __future__ import annotations
 
+import logging
 from dataclasses import replace
 
 import gtsam
@@ -13,7 +14,9 @@ import pytest
 import scipy.optimize
 from test_degeneracy import spherical_wrist
 
+import dcc_fg.calibrate as cal
 from dcc_fg.calibrate import CalibrationOptions, calibrate, data_cost
+from dcc_fg.calibration_graph import GraphSolution
 from dcc_fg.gauss_newton import DENSE_LIMIT
 from dcc_fg.projection import projected_solve, reduced_system
 from dcc_fg.studies.calibration_accuracy import T_ds_errors, cramer_rao_bound
@@ -115,3 +118,22 @@ def test_projected_polish_ends_at_or_below_the_joint_solve_on_a_nearly_intersect
     e = T_ds_errors(sim.truth, sim.joints_calibration, projected.calibration, projected.joint_angles)
     rot, tr = np.sqrt(np.mean(np.sum(e[:, :3] ** 2, 1))), np.sqrt(np.mean(np.sum(e[:, 3:] ** 2, 1)))
     assert rot <= 2.5 * crb.rotation_rms and tr <= 2.5 * crb.translation_rms, (rot, crb.rotation_rms, tr)
+
+
+def test_a_projected_solve_stopped_on_its_cap_is_kept_with_a_warning(monkeypatch, caplog) -> None:  # noqa: ANN001
+    """Two steps are not enough here: the lower solution is kept, the report says it did not converge,
+    a warning says so, and the joint solve's remaining decrease stays (the convergence health check
+    reads it); a converged solve clears it."""
+    graph, values, _, _ = synthetic_problem(1)
+    dims = [(KIN, 2)] + [(_x(i), 1) for i in range(N_SNAPSHOTS)]
+    solved = GraphSolution(values, 500, graph.error(values), graph.error(values), next_decrease=0.5)
+    real = cal.projected_solve
+    monkeypatch.setattr(cal, "projected_solve", lambda g, v, d: real(g, v, d, max_steps=2))
+    with caplog.at_level(logging.WARNING, logger="dcc_fg.calibrate"):
+        kept, report = cal.projected_polish(graph, graph, solved, dims)
+    assert report["kept"] and not report["converged"] and report["steps"] == 2
+    assert kept.final_error < solved.final_error and kept.next_decrease == 0.5
+    assert "stopped on its cap of 2 steps" in caplog.text
+    monkeypatch.setattr(cal, "projected_solve", real)
+    kept, report = cal.projected_polish(graph, graph, solved, dims)
+    assert report["kept"] and report["converged"] and np.isnan(kept.next_decrease)

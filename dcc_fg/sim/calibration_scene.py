@@ -39,6 +39,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
 
+import gtsam
 import numpy as np
 from numpy.typing import NDArray
 
@@ -378,3 +379,33 @@ def simulate_calibration(
     )
     initial = perturb_kinematics(truth, cfg, rng)
     return SimulatedCalibration(cal_set, val_set, truth, initial, th_c, th_v, T_c, T_v, cfg)
+
+
+def yaw_roll_pitch_gimbal(
+    seed: int, n_snapshots: int = 20, offset_m: float = 0.0, pixel_sigma: float = 0.3
+) -> SimulatedCalibration:
+    """A yaw-roll-pitch camera gimbal: three axes that intersect in one point (a spherical wrist: DH
+    a = d = 0 except d_1 up to 3 cm, twists +-90 deg), joint 2 centred at 90 deg (clear of gimbal
+    lock), half ranges 25 / 20 / 25 deg, a random base mount ~8 cm from the static camera and the
+    dynamic camera 10 cm beside the wrist. ``offset_m > 0``: the axes miss each other by random link
+    offsets (a_1, d_2, a_2) up to that many metres (drawn last, so the intersecting scene of a seed
+    stays the same). Gaussian corner noise ``pixel_sigma`` px; ``seed`` draws the mechanism and the scene."""
+    rng = np.random.default_rng(seed)
+    q = rng.normal(size=4)
+    R_bs = gtsam.Rot3.Quaternion(*(q / np.linalg.norm(q))).matrix()
+    T_bs = np.eye(4)
+    T_bs[:3, :3] = R_bs
+    T_bs[:3, 3] = -R_bs @ (np.array([0.08, 0.0, 0.0]) + rng.uniform(-0.02, 0.02, size=3))
+    dh = np.zeros((3, 3))
+    dh[0, 0] = rng.uniform(-0.03, 0.03)
+    dh[:, 2] = rng.choice([-1.0, 1.0], size=3) * np.pi / 2
+    centre = np.array([rng.uniform(-np.pi, np.pi), np.pi / 2, rng.uniform(-np.pi, np.pi)])
+    half = np.deg2rad([25.0, 20.0, 25.0])
+    T_ds_mid = np.eye(4)
+    T_ds_mid[:3, 3] = [-0.10, 0.0, 0.0]
+    if offset_m > 0.0:
+        dh[0, 1], dh[1, 0], dh[1, 1] = rng.uniform(-offset_m, offset_m, size=3)
+    truth = mechanism_with_camera_at(chain.tau_from_se3(T_bs), dh, centre, T_ds_mid)
+    ranges = np.column_stack([centre - half, centre + half])
+    cfg = SceneConfig(n_calibration=n_snapshots, n_validation=1, pixel_sigma=pixel_sigma)
+    return simulate_calibration(seed, cfg, mechanism=(truth, ranges))
