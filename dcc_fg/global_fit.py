@@ -219,20 +219,28 @@ def projected_rerun(
     try:
         res = calibrate(start.data, start.initial, replace(opt, project_held=True))
     except (EstimatorError, ValueError) as exc:
-        report.append({"start": name, "pose_level_rms": start.pose_level_rms, "error": str(exc)})
+        report.append(start_entry(name, start, error=exc))
         return best
-    report.append(
-        {
-            "start": name,
-            "pose_level_rms": start.pose_level_rms,
-            "data_cost": data_cost(res),
-            "final_error": float(res.final_error),
-            "iterations": int(res.iterations),
-            "time_s": float(res.solve_time_s),
-            "projection": res.extra.get("held_projection"),
-        }
-    )
+    report.append({**start_entry(name, start, res), "projection": res.extra.get("held_projection")})
     return res if data_cost(res) < data_cost(best) else best
+
+
+def start_entry(
+    name: str, start: Start, res: CalibrationResult | None = None, error: Exception | None = None
+) -> dict[str, Any]:
+    """One line of ``extra["global"]["starts"]``: the start's name and pose-level RMS, then its solve's
+    data cost, final error, iterations and time, or its ``error``."""
+    entry: dict[str, Any] = {"start": name, "pose_level_rms": start.pose_level_rms}
+    if error is not None:
+        return {**entry, "error": str(error)}
+    assert res is not None
+    return {
+        **entry,
+        "data_cost": data_cost(res),
+        "final_error": float(res.final_error),
+        "iterations": int(res.iterations),
+        "time_s": float(res.solve_time_s),
+    }
 
 
 def calibrate_global(
@@ -274,19 +282,10 @@ def calibrate_global(
             res = calibrate(start.data, start.initial, opt)
         except (EstimatorError, ValueError) as exc:
             first_error = first_error or exc
-            report.append({"start": start.name, "pose_level_rms": start.pose_level_rms, "error": str(exc)})
+            report.append(start_entry(start.name, start, error=exc))
             continue
         results.append((start, res))
-        report.append(
-            {
-                "start": start.name,
-                "pose_level_rms": start.pose_level_rms,
-                "data_cost": data_cost(res),
-                "final_error": float(res.final_error),
-                "iterations": int(res.iterations),
-                "time_s": float(res.solve_time_s),
-            }
-        )
+        report.append(start_entry(start.name, start, res))
     if not results:
         assert first_error is not None
         raise first_error
