@@ -57,6 +57,7 @@ Frames and conventions: docs/architecture.md.
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 
 import numpy as np
 from numpy.typing import NDArray
@@ -74,7 +75,7 @@ from dcc_fg.init import (
 )
 from dcc_fg.joint_motion import check_joint_motion
 from dcc_fg.model import GimbalCalibration
-from dcc_fg.noise_floor import noise_floor
+from dcc_fg.noise_floor import noise_floor, translation_whitening
 from dcc_fg.util.errors import stage
 from factors import chain
 
@@ -98,6 +99,7 @@ HOP_FROM = 3  # L = 3: hops start from the best this many whitened minima found 
 HOP_ROTATION_SIGMA = 0.15  # rad: perturbation of the rotational kinematic entries (Euler angles, twists)
 HOP_TRANSLATION_SIGMA = 0.01  # m: perturbation of the translational entries (mount offsets, d, a)
 N_HOP_KEEP = 2  # L = 3: at most this many hop minima become extra starts
+N_WHITENED_AXIS_KEEP = 3  # L = 3: minima of the whitened axis search that seed the hops
 # A hop minimum becomes a start (one more corner-level solve, ~10 s) when its whitened cost (0.5 chi-square)
 # is below every candidate's by more than this. The whitened cost ranks the corner-level minima only
 # roughly (rendered members 11, 14, 29: the truth start's minimum lowest or second; on member 14 two
@@ -262,21 +264,30 @@ def _translation_design(R_sb: FloatArray, thetas: FloatArray, alphas: FloatArray
 
 
 def _translation_fit(
-    T_sd: FloatArray, R_sb: FloatArray, thetas: FloatArray, alphas: FloatArray
+    T_sd: FloatArray, R_sb: FloatArray, thetas: FloatArray, alphas: FloatArray, weights: FloatArray | None = None
 ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
     """Linear least squares for ``t_sb`` (perpendicular to joint 1's axis: ``tau_s.tz = 0``),
     ``(d_l, a_l)`` for l < L and ``t_ed``, given all rotations (``T_sd`` (K, 4, 4), ``R_sb``, joint
-    angles (K, L) and twists, rad). Returns (t_sb, da (L-1, 2), t_ed, residual (3K,) in m)."""
+    angles (K, L) and twists, rad), each snapshot's misfit multiplied by ``weights`` (K, 3, 3) when given
+    (:func:`dcc_fg.noise_floor.translation_whitening`). Returns (t_sb, da (L-1, 2), t_ed, residual (3K,)
+    in m, or whitened with ``weights``)."""
     K, L = thetas.shape
     A, P = _translation_design(R_sb, thetas, alphas)
     n = A.shape[2]
-    A2, b = A.reshape(3 * K, n), T_sd[:, :3, 3].ravel()
+    target = T_sd[:, :3, 3]
+    if weights is not None:
+        A, target = weights @ A, np.einsum("kij,kj->ki", weights, target)
+    A2, b = A.reshape(3 * K, n), target.ravel()
     x = np.linalg.lstsq(A2, b, rcond=None)[0]
     return P @ x[0:2], x[2 : 2 + 2 * (L - 1)].reshape(L - 1, 2), x[n - 3 :], A2 @ x - b
 
 
 def _branch_translation_fit(
-    T_sd: FloatArray, R_sb: FloatArray, branches: tuple[FloatArray, FloatArray], alphas: FloatArray
+    T_sd: FloatArray,
+    R_sb: FloatArray,
+    branches: tuple[FloatArray, FloatArray],
+    alphas: FloatArray,
+    weights: FloatArray | None = None,
 ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
     """:func:`_translation_fit` with each snapshot's theta_2 branch chosen by the fit (L = 3).
 
@@ -284,12 +295,14 @@ def _branch_translation_fit(
     rotation; only the lever arms tell them apart. A joint-2 range that crosses 0 or pi (where the
     three axes are coplanar) needs both. Alternation from the better single branch: fit the
     translations, give each snapshot the branch whose translation misfit is smaller under that fit,
-    refit, until no snapshot changes (at most 4 rounds).
+    refit, until no snapshot changes (at most 4 rounds). ``weights``: as in :func:`_translation_fit`.
 
-    Returns (t_sb, da, t_ed, residual (3K,) in m, joint angles (K, 3) of the chosen branches).
+    Returns (t_sb, da, t_ed, residual (3K,) in m or whitened, joint angles (K, 3) of the chosen branches).
     """
     target = T_sd[:, :3, 3]
     designs = [_translation_design(R_sb, th, alphas)[0] for th in branches]
+    if weights is not None:
+        target, designs = np.einsum("kij,kj->ki", weights, target), [weights @ A for A in designs]
     P = _translation_design(R_sb, branches[0][:1], alphas)[1]
 
     def solve(A: FloatArray) -> tuple[FloatArray, FloatArray]:
@@ -438,11 +451,17 @@ class _ThreeJointProjection:
     whitening of :func:`dcc_fg.init.pose_level_refine`. Three non-parallel axes reproduce any
     rotation, so the translations (lever arms of a few cm) carry all the information about the
     axes; this 6-parameter problem is cheap enough for many random starts.
+
+    ``translation_whitening`` (K, 3, 3), when given, replaces the 1 mm of the translation misfit by
+    each snapshot's information of its lever arm (:func:`dcc_fg.noise_floor.translation_whitening`):
+    the axis search on the whitened pose-level cost (module docstring).
     """
 
-    def __init__(self, T_ds: FloatArray) -> None:
+    def __init__(self, T_ds: FloatArray, translation_whitening: FloatArray | None = None) -> None:
         self.T_sd = np.array([chain.inv_se3(T) for T in T_ds])
         self.R_sd = self.T_sd[:, :3, :3]
+        self.weights = translation_whitening
+        self.translation_unit = 1e-3 if translation_whitening is None else 1.0
 
     def solve(
         self, w1: FloatArray, b3: FloatArray, alphas: FloatArray
@@ -453,8 +472,8 @@ class _ThreeJointProjection:
         Q = R_bs @ self.R_sd @ R_ed.T
         thetas_p, misfit = rotation_ik_three_joints(Q, al, 1.0)
         thetas_m, _ = rotation_ik_three_joints(Q, al, -1.0)
-        t_sb, da, t_ed, r_t, thetas = _branch_translation_fit(self.T_sd, R_bs.T, (thetas_p, thetas_m), al)
-        r = np.concatenate([r_t / 1e-3, misfit.ravel() / 1e-3])
+        t_sb, da, t_ed, r_t, thetas = _branch_translation_fit(self.T_sd, R_bs.T, (thetas_p, thetas_m), al, self.weights)
+        r = np.concatenate([r_t / self.translation_unit, misfit.ravel() / 1e-3])
         return R_bs, R_ed, thetas, r, np.concatenate([t_sb, da.ravel(), t_ed])
 
     def residual(self, p: FloatArray, w1_0: FloatArray, b3_0: FloatArray) -> FloatArray:
@@ -466,7 +485,7 @@ class _ThreeJointProjection:
         W = _rot_z_batch(thetas[:, 2]) @ R_ed  # = Rz(theta_3) R_ed
         thetas[:, 2], R_ed = _end_mount(W, thetas[:, 2])
         al = np.array([alphas[0], alphas[1], 0.0])
-        t_sb, da, t_ed, _ = _translation_fit(self.T_sd, R_bs.T, thetas, al)
+        t_sb, da, t_ed, _ = _translation_fit(self.T_sd, R_bs.T, thetas, al, self.weights)
         return _assemble(R_bs.T, t_sb, R_ed, t_ed, al, da), thetas
 
 
@@ -485,6 +504,24 @@ def three_joint_candidates(
     best distinct minima (costs within ``SAME_AXIS_MINIMUM`` relative count once: the same minimum
     reached from several starts), lowest fit RMS first: [(kin, joint angles (K, 3), fit RMS)]."""
     proj = _ThreeJointProjection(T_ds)
+    out = []
+    for w1, b3, alphas in axis_search(proj, n_starts, seed)[:N_L3_KEEP]:
+        kin0, th0 = proj.kin(w1, b3, alphas)
+        out.append(
+            pose_level_refine(
+                kin0, 3, T_ds, th0, free, [2], True, max_iterations=CANDIDATE_MAX_ITERATIONS, rel_tol=CANDIDATE_REL_TOL
+            )
+        )
+    return sorted(out, key=lambda c: c[2])
+
+
+def axis_search(
+    proj: _ThreeJointProjection, n_starts: int = N_L3_STARTS, seed: int = 0
+) -> list[tuple[FloatArray, FloatArray, FloatArray]]:
+    """L = 3: Levenberg-Marquardt on the 6 parameters of ``proj`` from ``n_starts`` random axes and
+    twists (in (0.3, pi - 0.3) rad); its distinct minima (costs within ``SAME_AXIS_MINIMUM`` relative
+    count once: the same minimum reached from several starts, or its mirror image), lowest cost first,
+    as ``(w1 in s, b3 in d, twists (2,) rad)``."""
     rng = np.random.default_rng(seed)
     minima: list[tuple[float, FloatArray, FloatArray, FloatArray]] = []
     for _ in range(n_starts):
@@ -500,15 +537,18 @@ def three_joint_candidates(
     for m in minima:  # the same minimum reached from several starts (or its mirror image) counts once
         if all(abs(m[0] - k[0]) > SAME_AXIS_MINIMUM * max(k[0], 1e-12) for k in kept):
             kept.append(m)
-    out = []
-    for _, w1, b3, alphas in kept[:N_L3_KEEP]:
-        kin0, th0 = proj.kin(w1, b3, alphas)
-        out.append(
-            pose_level_refine(
-                kin0, 3, T_ds, th0, free, [2], True, max_iterations=CANDIDATE_MAX_ITERATIONS, rel_tol=CANDIDATE_REL_TOL
-            )
-        )
-    return sorted(out, key=lambda c: c[2])
+    return [(w1, b3, alphas) for _, w1, b3, alphas in kept]
+
+
+def whitened_axis_starts(
+    T_ds: FloatArray, whitening: FloatArray, n_starts: int = N_L3_STARTS, seed: int = 0
+) -> list[tuple[FloatArray, FloatArray]]:
+    """L = 3: the axis search (:func:`axis_search`) on the whitened pose-level cost: each snapshot's
+    lever-arm misfit weighed by its information (:func:`dcc_fg.noise_floor.translation_whitening` of
+    ``whitening``, (K, 6, 6)) instead of 1 mm. Returns the :data:`N_WHITENED_AXIS_KEEP` best distinct
+    minima as ``(kin, joint angles (K, 3))`` in the auto-init gauge, not refit (module docstring)."""
+    proj = _ThreeJointProjection(T_ds, translation_whitening(whitening))
+    return [proj.kin(w1, b3, alphas) for w1, b3, alphas in axis_search(proj, n_starts, seed)[:N_WHITENED_AXIS_KEEP]]
 
 
 def _rotational_entries(n_joints: int) -> NDArray[np.bool_]:
@@ -526,10 +566,13 @@ def whitened_hops(
     free: NDArray[np.bool_],
     n_hops: int = N_HOPS,
     seed: int = 0,
+    seeds: Sequence[tuple[FloatArray, FloatArray]] = (),
 ) -> list[tuple[FloatArray, FloatArray, float]]:
     """L = 3: pose-level minima of the *whitened* cost deeper than every one of ``fits`` (module docstring).
 
     Each fit is refit on ``sum_i |W_i Log(T_ds_i^-1 T_ds(kin, theta_i))|^2`` (``whitening`` W, (K, 6, 6)),
+    and so is each of ``seeds`` (``(kin, joint angles)``, e.g. :func:`whitened_axis_starts`: they join the
+    minima found but not the reference "best refit of ``fits``"),
     then ``n_hops`` times one of the :data:`HOP_FROM` best minima so far (in turn) has its free
     kinematic entries perturbed (:data:`HOP_ROTATION_SIGMA`, :data:`HOP_TRANSLATION_SIGMA`) and is
     refit from its joint angles. Returns up to :data:`N_HOP_KEEP` minima (lowest first, whitened costs
@@ -548,6 +591,7 @@ def whitened_hops(
     if not pool:
         return []
     best_start = pool[0][2]
+    pool = sorted(pool + [refit(kin, th) for kin, th in seeds], key=lambda m: m[2])
     rng = np.random.default_rng(seed)
     rot = _rotational_entries(3) & free
     trans = ~_rotational_entries(3) & free
@@ -698,7 +742,8 @@ def auto_initial_candidates(
             floor = noise_floor(data)
             T_floor = floor.T_dt @ np.linalg.inv(floor.T_st)
             try:  # extra starts only: without a usable whitening the axis-search candidates remain
-                fits += whitened_hops(fits, T_floor, floor.T_ds_whitening(), free)
+                W = floor.T_ds_whitening()
+                fits += whitened_hops(fits, T_floor, W, free, seeds=whitened_axis_starts(T_floor, W))
             except np.linalg.LinAlgError as exc:
                 log.warning("no basin hopping on the whitened pose-level cost (%s): the PnP information of "
                             "some image pair is singular; the axis-search starts remain", exc)  # fmt: skip

@@ -115,6 +115,23 @@ def _adjoint(T: FloatArray) -> FloatArray:
     return Ad
 
 
+def translation_whitening(whitening: FloatArray) -> FloatArray:
+    """(K, 3, 3) upper-triangular ``V_i`` with ``V_i^T V_i`` the information of the translation part ``v``
+    (m) of a right perturbation ``[omega, v]`` whose information is ``W_i^T W_i`` (``whitening`` W, (K, 6, 6),
+    e.g. :meth:`NoiseFloor.T_ds_whitening`), with ``omega`` marginalized: the inverse of the ``v`` block of
+    ``(W_i^T W_i)^-1``.
+
+    Use: a chain whose rotation reproduces the measured ``R_ds_i`` exactly has
+    ``T_ds_i^-1 T_ds(chain) = [I, t_sd_i - t_sd(chain)]`` (``T_sd = T_ds^-1``, translations in s), so its
+    right perturbation is ``[0, t_sd_i - t_sd(chain)]`` and ``|V_i (t_sd(chain) - t_sd_i)|^2`` weighs its
+    lever-arm misfit by how well the two images determine it, the rotation noise included."""
+    info = np.transpose(whitening, (0, 2, 1)) @ whitening
+    cov_v = np.linalg.inv(info)[:, 3:, 3:]
+    info_v = np.linalg.inv(0.5 * (cov_v + np.transpose(cov_v, (0, 2, 1))))
+    info_v = 0.5 * (info_v + np.transpose(info_v, (0, 2, 1)))
+    return np.transpose(np.linalg.cholesky(info_v), (0, 2, 1))
+
+
 @dataclass
 class NoiseFloor:
     """The model-independent noise floor: per snapshot a free target pose in each camera.
