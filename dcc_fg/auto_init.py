@@ -50,6 +50,17 @@ candidates on that cost and explores it by basin hopping (random perturbations o
 refit in ~0.3 s instead of ~10 s for a corner-level solve); whitened minima deeper than every
 candidate's become extra starts.
 
+The hops perturb by 0.15 rad and cannot reach a basin whose axes lie far from every candidate's (member
+14: joint 2's axis 76 deg away from the best candidate's, twists of 22-24 deg between consecutive axes).
+The axis search is therefore also run on the whitened cost (:func:`whitened_axis_starts`): each
+snapshot's lever-arm misfit ``t_sd(chain) - t_sd_i`` is weighed by its information with the rotation
+marginalized (:func:`dcc_fg.noise_floor.translation_whitening`; with the IK reproducing the measured
+rotation exactly, the right perturbation of ``T_ds`` is ``[0, t_sd_i - t_sd(chain)]``), and its best
+minima, refit on the full whitened cost, join the hops' pool. On member 14 its best minimum (0.5 chi-square
+23.8) lies below the truth's own whitened minimum (25.2) and the equal-weight candidates' best (33.8), and
+the corner-level solve from it ends below the truth start; likewise on member 11 (29.6 vs 30.3). Starting
+the equal-weight search at the truth's axes leaves that basin (it is not a minimum of the 1 mm cost).
+
 Everything is refined afterwards: the pose-level LM fit, then the corner-level graph.
 Frames and conventions: docs/architecture.md.
 """
