@@ -107,8 +107,10 @@ def _calibrate_member(seed: int) -> tuple[dict, float, float, float]:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("seed", _first_members(True, 2))
+@pytest.mark.parametrize("seed", _first_members(True, 1))
 def test_exactly_intersecting_members_keep_the_exact_model_and_reach_the_bound(seed: int) -> None:
+    # One member here (~200 s since the whitened axis search adds L = 3 starts; two took CI to 26 min);
+    # benchmarks/bench_random_mechanisms.py checks all 10 exactly intersecting members of its 50.
     sel, rot, tra, nees = _calibrate_member(seed)
     assert sel["model"] == EXACT, sel
     assert sel["gain_chi2"] <= sel["threshold_chi2"]
