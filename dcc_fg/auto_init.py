@@ -274,6 +274,14 @@ def _translation_design(R_sb: FloatArray, thetas: FloatArray, alphas: FloatArray
     return A, P
 
 
+def _weighted(weights: FloatArray | None, A: FloatArray, target: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """The translation model's design ``A`` (K, 3, n) and ``target`` (K, 3) with each snapshot's rows
+    multiplied by ``weights`` (K, 3, 3); unchanged when ``weights`` is None."""
+    if weights is None:
+        return A, target
+    return weights @ A, np.einsum("kij,kj->ki", weights, target)
+
+
 def _translation_fit(
     T_sd: FloatArray, R_sb: FloatArray, thetas: FloatArray, alphas: FloatArray, weights: FloatArray | None = None
 ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
@@ -285,9 +293,7 @@ def _translation_fit(
     K, L = thetas.shape
     A, P = _translation_design(R_sb, thetas, alphas)
     n = A.shape[2]
-    target = T_sd[:, :3, 3]
-    if weights is not None:
-        A, target = weights @ A, np.einsum("kij,kj->ki", weights, target)
+    A, target = _weighted(weights, A, T_sd[:, :3, 3])
     A2, b = A.reshape(3 * K, n), target.ravel()
     x = np.linalg.lstsq(A2, b, rcond=None)[0]
     return P @ x[0:2], x[2 : 2 + 2 * (L - 1)].reshape(L - 1, 2), x[n - 3 :], A2 @ x - b
@@ -310,10 +316,8 @@ def _branch_translation_fit(
 
     Returns (t_sb, da, t_ed, residual (3K,) in m or whitened, joint angles (K, 3) of the chosen branches).
     """
-    target = T_sd[:, :3, 3]
-    designs = [_translation_design(R_sb, th, alphas)[0] for th in branches]
-    if weights is not None:
-        target, designs = np.einsum("kij,kj->ki", weights, target), [weights @ A for A in designs]
+    weighted = [_weighted(weights, _translation_design(R_sb, th, alphas)[0], T_sd[:, :3, 3]) for th in branches]
+    designs, target = [A for A, _ in weighted], weighted[0][1]
     P = _translation_design(R_sb, branches[0][:1], alphas)[1]
 
     def solve(A: FloatArray) -> tuple[FloatArray, FloatArray]:
