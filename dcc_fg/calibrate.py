@@ -46,6 +46,7 @@ from typing import Any
 
 import gtsam
 import numpy as np
+from gtsam.symbol_shorthand import X
 from numpy.typing import NDArray
 
 from dcc_fg.calibration_graph import (
@@ -311,11 +312,13 @@ def pnp_initial_values(
 
 
 def initial_problem(
-    data: CalibrationDataset, initial: GimbalCalibration, opt: CalibrationOptions
+    data: CalibrationDataset, initial: GimbalCalibration, opt: CalibrationOptions, pose_level: bool = True
 ) -> CalibrationProblem:
     """The graph's measurements, gauge and initial values: PnP in both cameras (target pose initial
     values, two-way points, joint-angle initialization), the joint-motion check (encoderless), then
     the pose-level fit of the chain to the PnP ``T_ds`` (L >= 1) or the closed-form ``tau_d`` (L = 0).
+    ``pose_level=False`` skips that fit: the kinematics start at ``initial`` and the joint angles at
+    the snapshots' guesses (a solve continued from a solution, :func:`continue_projected`).
 
     Raises ValueError for data in which a joint never moves (:func:`dcc_fg.joint_motion.check_joint_motion`).
     """
@@ -339,7 +342,7 @@ def initial_problem(
             check_joint_motion(data, T_ds_pnp, L, thetas_given.copy(), initial)
     thetas0, kin_start = thetas_given.copy(), initial.kin.copy()
     with stage("pose-level initialization", hint="check the initial kinematics (--gimbal) or use --init auto"):
-        if opt.mode != "validate" and L > 0:
+        if pose_level and opt.mode != "validate" and L > 0:
             kin_start, thetas_fit, _ = robust_pose_level_init(
                 initial.kin,
                 L,
@@ -353,7 +356,7 @@ def initial_problem(
             )
             if estimate_theta:
                 thetas0 = thetas_fit
-        elif opt.mode != "validate":  # L = 0: T_ds is one constant transform; start tau_d from PnP
+        elif pose_level and opt.mode != "validate":  # L = 0: T_ds is one constant transform; start tau_d from PnP
             kin_start = zero_joint_init(initial.kin, T_ds_pnp)
     return CalibrationProblem(
         data=data,
@@ -552,25 +555,13 @@ def calibrate(
     t_start = time.perf_counter()
     problem = initial_problem(data, initial, opt)
     held = hold_degenerate_directions(problem, opt.nominal)
-    graph, values = build_graph(problem)
-    weak_graph = gtsam.NonlinearFactorGraph()  # the data with the weakened held prior: polish and covariances
-    data_graph = gtsam.NonlinearFactorGraph()  # the data without the held prior: the projected solve
-    for i in range(graph.size()):
-        weak_graph.add(graph.at(i))  # the same data factors, shared
-        data_graph.add(graph.at(i))
-    if problem.kin_key is not None:
-        for factor in held.factors(problem.kin_key):
-            graph.add(factor)
-        for factor in held.factors(problem.kin_key, COVARIANCE_PRIOR_WEAKENING):
-            weak_graph.add(factor)
-        for factor in held.nominal_factors(problem.kin_key):
-            data_graph.add(factor)
+    graphs = SolveGraphs.of(problem, held)
     dims = variable_dims(problem) if opt.gauss_newton else None
-    solved = solve_graph(graph, values, opt.max_iterations, dims)
+    solved = solve_graph(graphs.solve, graphs.values, opt.max_iterations, dims)
     polish_note = ""
     if held.count and problem.kin_key is not None:
         try:
-            polished = solve_graph(weak_graph, solved.values, opt.max_iterations, dims)
+            polished = solve_graph(graphs.weak, solved.values, opt.max_iterations, dims)
             iterations = solved.iterations + polished.iterations
             solved = replace(polished, initial_error=solved.initial_error, iterations=iterations)
         except EstimatorError as exc:  # keep the solution with the full-strength prior, and say so
@@ -578,7 +569,82 @@ def calibrate(
             logger.warning("%s; the result keeps the full-strength prior", polish_note)
     projection: dict[str, Any] | None = None
     if held.count and problem.kin_key is not None and opt.project_held:
-        solved, projection = projected_polish(data_graph, weak_graph, solved, variable_dims(problem))
+        solved, projection = projected_polish(graphs.data, graphs.weak, solved, variable_dims(problem))
+    return finish(problem, held, graphs.weak, solved, initial, opt, t_start, polish_note, projection)
+
+
+def continue_projected(data: CalibrationDataset, result: CalibrationResult) -> CalibrationResult | None:
+    """``result`` (of :func:`calibrate`, encoderless, directions held by prior) solved on from where it
+    stopped with the projected solve (:func:`projected_polish`), without repeating its joint solve: the
+    problem is set up at the result's kinematics and joint angles (no pose-level fit), the held
+    directions found there. None when that solve fails or does not lower the data error, or the
+    result holds no directions."""
+    opt = result.options
+    t_start = time.perf_counter()
+    snapshots = [replace(s, joints=t) for s, t in zip(data.snapshots, result.joint_angles, strict=True)]
+    guesses = replace(data, snapshots=snapshots)
+    problem = initial_problem(guesses, result.calibration, opt, pose_level=False)
+    held = hold_degenerate_directions(problem, opt.nominal)
+    if not held.count or problem.kin_key is None:
+        return None
+    graphs = SolveGraphs.of(problem, held)
+    values = gtsam.Values(graphs.values)
+    for i, T in enumerate(result.T_st):
+        if values.exists(X(i)):
+            values.update(X(i), gtsam.Pose3(T))
+    error = float(graphs.weak.error(values))
+    start = GraphSolution(values, result.iterations, result.initial_error, error)
+    solved, projection = projected_polish(graphs.data, graphs.weak, start, variable_dims(problem))
+    if not projection.get("kept") or not projection["data_error_after"] < data_cost(result):
+        return None
+    out = finish(problem, held, graphs.weak, solved, result.calibration, opt, t_start, "", projection)
+    out.solve_time_s += result.solve_time_s
+    return out
+
+
+@dataclass
+class SolveGraphs:
+    """The graphs of one calibration: ``solve`` (the data with the weak prior on the held directions),
+    ``weak`` (the prior weakened by ``COVARIANCE_PRIOR_WEAKENING``: polish and covariances), ``data``
+    (the data with the nominal priors only: the projected solve), and the initial ``values``."""
+
+    solve: gtsam.NonlinearFactorGraph
+    weak: gtsam.NonlinearFactorGraph
+    data: gtsam.NonlinearFactorGraph
+    values: gtsam.Values
+
+    @classmethod
+    def of(cls, problem: CalibrationProblem, held: HeldDirections) -> SolveGraphs:
+        graph, values = build_graph(problem)
+        weak, data = gtsam.NonlinearFactorGraph(), gtsam.NonlinearFactorGraph()
+        for i in range(graph.size()):
+            weak.add(graph.at(i))  # the same data factors, shared
+            data.add(graph.at(i))
+        if problem.kin_key is not None:
+            for factor in held.factors(problem.kin_key):
+                graph.add(factor)
+            for factor in held.factors(problem.kin_key, COVARIANCE_PRIOR_WEAKENING):
+                weak.add(factor)
+            for factor in held.nominal_factors(problem.kin_key):
+                data.add(factor)
+        return cls(graph, weak, data, values)
+
+
+def finish(
+    problem: CalibrationProblem,
+    held: HeldDirections,
+    weak_graph: gtsam.NonlinearFactorGraph,
+    solved: GraphSolution,
+    initial: GimbalCalibration,
+    opt: CalibrationOptions,
+    t_start: float,
+    polish_note: str,
+    projection: dict[str, Any] | None,
+) -> CalibrationResult:
+    """The result of a solve: residuals, variance factor, observability, covariances (on ``weak_graph``)
+    and the report (``initial``: the calibration the solve started from, for the gauge and, in
+    validation, the validated values)."""
+    data, L, validating = problem.data, problem.n_joints, opt.mode == "validate"
     sol = solution_arrays(problem, solved.values)
     res_s, res_d = pixel_residuals(problem, sol)
     variance_factor = variance_factor_of(problem, res_s, res_d, opt.pixel_sigma is not None, held.count)

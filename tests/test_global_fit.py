@@ -169,31 +169,66 @@ def test_covering_covariance_has_every_plausible_solution_within_one_sigma() -> 
     assert not np.any(gf.covering_covariance(np.zeros((3, 2, 6))))
 
 
-@pytest.mark.parametrize("scale, kept", [(0.9, True), (1.1, False)])
-def test_a_best_solution_with_held_directions_is_solved_again_with_the_projected_solve(
-    monkeypatch, scale: float, kept: bool
-) -> None:  # noqa: ANN001
-    """The best start is rerun with ``project_held`` when it holds directions by prior; the rerun is
-    kept only when its data cost is lower, and recorded among the starts either way."""
+def _held(res):  # noqa: ANN001, ANN202
+    """``res`` marked as holding a direction by prior."""
+    return replace(res, extra={**res.extra, "held_by_prior": [{"parameters": ["dh1.alpha"]}]})
+
+
+def _scaled(res, scale: float):  # noqa: ANN001, ANN202
+    """``res`` with its data cost times ``scale**2``."""
+    return replace(res, residuals_static=[r * scale for r in res.residuals_static],
+                   residuals_dynamic=[r * scale for r in res.residuals_dynamic])  # fmt: skip
+
+
+@pytest.mark.parametrize("lower", [True, False])
+def test_a_best_solution_with_held_directions_is_solved_on_with_the_projected_solve(monkeypatch, lower: bool) -> None:  # noqa: ANN001
+    """A solution that holds directions by prior is continued with the projected solve (without repeating
+    its joint solve); the continuation replaces it only when its data cost is lower (continue_projected
+    returns None otherwise), and is recorded among the starts either way."""
     sim = simulate_calibration(2, SceneConfig(n_calibration=12, n_validation=1))
     real = gf.calibrate
-    options_seen = []
+    continued = []
 
-    def fake(data, initial, opt):  # noqa: ANN001, ANN202
-        options_seen.append(opt.project_held)
-        res = real(data, initial, replace(opt, project_held=False))
-        extra = {**res.extra, "held_by_prior": [{"parameters": ["dh1.alpha"]}]}
-        if opt.project_held:  # the projected rerun "ends" lower (scale < 1) or higher
-            res = replace(res, residuals_static=[r * scale for r in res.residuals_static])
-            extra["held_projection"] = {"kept": True}
-        return replace(res, extra=extra)
+    def fake_continue(data, res):  # noqa: ANN001, ANN202
+        continued.append(res)
+        if not lower:
+            return None
+        out = _scaled(res, 0.9)
+        out.extra["held_projection"] = {"kept": True}
+        return out
 
-    monkeypatch.setattr(gf, "calibrate", fake)
-    opt = CalibrationOptions(compute_covariance=False)
-    res = calibrate_global(sim.calibration_set, 2, opt, initial=sim.initial, automatic=False)
-    assert options_seen == [False, True]
+    monkeypatch.setattr(gf, "calibrate", lambda d, i, o: _held(real(d, i, o)))
+    monkeypatch.setattr(gf, "continue_projected", fake_continue)
+    res = calibrate_global(sim.calibration_set, 2, CalibrationOptions(compute_covariance=False), initial=sim.initial,
+                           automatic=False)  # fmt: skip
     starts = res.extra["global"]["starts"]
-    assert [s["start"] for s in starts] == ["gimbal.yaml", "gimbal.yaml, projected"]
-    assert starts[1]["projection"] == {"kept": True}
-    assert (data_cost(res) < starts[0]["data_cost"]) == kept
-    assert data_cost(res) == pytest.approx(min(s["data_cost"] for s in starts), rel=1e-12)
+    assert len(continued) == 1 and [s["start"] for s in starts] == ["gimbal.yaml", "gimbal.yaml, projected"]
+    if lower:
+        assert starts[1]["projection"] == {"kept": True}
+        assert data_cost(res) == pytest.approx(0.81 * starts[0]["data_cost"], rel=1e-9)
+    else:
+        assert starts[1]["projection"] == "did not lower the cost"
+        assert data_cost(res) == pytest.approx(starts[0]["data_cost"], rel=1e-12)
+
+
+def test_the_lowest_solutions_are_continued_before_they_are_compared(monkeypatch) -> None:  # noqa: ANN001
+    """Of five solutions holding directions, the N_PROJECTED lowest are continued, and a continuation
+    that ends below the best unprojected solution wins."""
+    sim = simulate_calibration(2, SceneConfig(n_calibration=12, n_validation=1))
+    base = gf.calibrate(sim.calibration_set, sim.initial, CalibrationOptions(compute_covariance=False))
+    scales = {f"s{k}": x for k, x in enumerate([1.3, 1.0, 1.5, 1.1, 1.2])}
+    starts = [gf.Start(name, sim.initial, sim.calibration_set) for name in scales]
+    names = iter(scales)
+    monkeypatch.setattr(gf, "starts_of", lambda *a, **k: starts)
+    monkeypatch.setattr(gf, "calibrate", lambda d, i, o: _held(_scaled(base, scales[next(names)])))
+    continued = []
+
+    def fake_continue(data, res):  # noqa: ANN001, ANN202
+        continued.append(round(float(np.sqrt(data_cost(res) / data_cost(base))), 6))
+        return _scaled(res, 0.5) if len(continued) == 3 else None  # the third lowest (1.2) ends lowest
+
+    monkeypatch.setattr(gf, "continue_projected", fake_continue)
+    res = calibrate_global(sim.calibration_set, 2, CalibrationOptions(compute_covariance=False))
+    assert sorted(continued) == [1.0, 1.1, 1.2] and len(continued) == gf.N_PROJECTED
+    assert res.extra["global"]["chosen"] == "s4"
+    assert data_cost(res) == pytest.approx(0.36 * data_cost(base), rel=1e-9)

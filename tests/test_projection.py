@@ -118,6 +118,16 @@ def test_projected_polish_ends_at_or_below_the_joint_solve_on_a_nearly_intersect
     e = T_ds_errors(sim.truth, sim.joints_calibration, projected.calibration, projected.joint_angles)
     rot, tr = np.sqrt(np.mean(np.sum(e[:, :3] ** 2, 1))), np.sqrt(np.mean(np.sum(e[:, 3:] ** 2, 1)))
     assert rot <= 2.5 * crb.rotation_rms and tr <= 2.5 * crb.translation_rms, (rot, crb.rotation_rms, tr)
+    # continued from the joint solve's result (dcc_fg.global_fit does this) instead of solved again: the
+    # same projected solve from the same point, so the same solution without the joint solve's cost
+    cont = cal.continue_projected(data, plain)
+    assert cont is not None and cont.extra["held_projection"]["kept"]
+    assert data_cost(cont) == pytest.approx(data_cost(projected), rel=1e-9)
+    dT = np.array([gtsam.Pose3(projected.T_ds(i)).localCoordinates(gtsam.Pose3(cont.T_ds(i))) for i in range(len(e))])
+    assert np.max(np.abs(dT)) < 1e-3 * min(crb.rotation_rms, crb.translation_rms)
+    assert cont.T_ds_covariances is not None and np.all(np.isfinite(cont.T_ds_covariances))
+    again = cal.continue_projected(data, projected)  # at the bottom already: nothing (or round-off) to gain
+    assert again is None or data_cost(again) == pytest.approx(data_cost(projected), rel=1e-9)
 
 
 def test_a_projected_solve_stopped_on_its_cap_is_kept_with_a_warning(monkeypatch, caplog) -> None:  # noqa: ANN001
