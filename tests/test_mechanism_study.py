@@ -11,6 +11,7 @@ import pytest
 from conftest import load_benchmark
 from scipy.stats import chi2
 
+import dcc_fg.studies.mechanism_study as ms
 from dcc_fg.studies.mechanism_study import (
     MechanismRecord,
     RunOutcome,
@@ -18,6 +19,7 @@ from dcc_fg.studies.mechanism_study import (
     pooled_ratio,
     study_member,
     summarize,
+    truth_start,
 )
 
 
@@ -125,3 +127,23 @@ def test_bench_table_marks_each_L() -> None:
     assert len(lines) == 3 and lines[1].rstrip().endswith("PASS") and lines[2].rstrip().endswith("FAIL")
     assert "3/4" in lines[2]
     assert "local minimum" in bench.member_line(failing[-1])
+
+
+@pytest.mark.parametrize("held, continued", [(True, "lower"), (True, None), (False, "lower")])
+def test_the_truth_start_is_continued_to_the_bottom_of_its_valley(monkeypatch, held, continued) -> None:  # noqa: ANN001
+    """The reference solution is the truth start's calibration, continued with the projected solve when it
+    holds directions (as the search does with its lowest solutions); kept as is when the continuation
+    does not lower the cost (continue_projected returns None) or nothing is held."""
+
+    class Res:
+        def __init__(self, name: str, is_held: bool) -> None:
+            self.name, self.extra = name, ({"held_by_prior": [{"parameters": ["dh1.alpha"]}]} if is_held else {})
+
+    calls = []
+    monkeypatch.setattr(ms, "with_joints", lambda data, thetas: data)
+    monkeypatch.setattr(ms, "calibrate", lambda data, initial, opt: Res("joint solve", held))
+    monkeypatch.setattr(ms, "continue_projected", lambda data, res: calls.append(res.name) or (
+        Res("continued", held) if continued else None))  # fmt: skip
+    out = truth_start(object(), object(), np.zeros((1, 3)), ms.CalibrationOptions())
+    assert calls == (["joint solve"] if held else [])
+    assert out.name == ("continued" if held and continued else "joint solve")
