@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
+import dcc_fg.global_fit as gf
 from dcc_fg.calibrate import CalibrationOptions
 from dcc_fg.calibration_health import determination_checks
 from dcc_fg.degeneracy import EXACT_OFFSET_SIGMA, nominal_priors
@@ -120,9 +121,15 @@ def test_exactly_intersecting_members_keep_the_exact_model_and_reach_the_bound(s
 
 
 @pytest.mark.slow
-def test_the_smallest_offsets_of_the_family_keep_an_accurate_answer() -> None:
+def test_the_smallest_offsets_of_the_family_keep_an_accurate_answer(monkeypatch) -> None:  # noqa: ANN001
     """Offset axes (the first 20 seeds' smallest offsets): the general model is kept when the data show
-    the offsets; whichever model is kept, the answer stays within the accuracy criterion."""
+    the offsets; whichever model is kept, the answer stays within the accuracy criterion.
+
+    Only the best solution is continued with the projected solve here (``N_PROJECTED = 1``, the search
+    before 624f122): continuing the next two as well took this test from 391 s to 649 s of the CI's
+    30 minutes, and the model selection it checks runs on the best solution either way (the continuation
+    of several solutions: tests/test_global_fit.py; its effect on the family: the L = 3 study)."""
+    monkeypatch.setattr(gf, "N_PROJECTED", 1)
     sel, rot, tra, nees = _calibrate_member(_smallest_offset_member(range(20)))
     if "gain_chi2" in sel:
         assert (sel["model"] == EXACT) == (sel["gain_chi2"] <= sel["threshold_chi2"])
