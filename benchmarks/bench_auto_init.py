@@ -30,12 +30,12 @@ from __future__ import annotations
 import argparse
 import json
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 
 from dcc_fg.calibrate import CalibrationOptions, CalibrationResult, calibrate
-from dcc_fg.data import CalibrationDataset
+from dcc_fg.data import CalibrationDataset, with_joints
 from dcc_fg.global_fit import calibrate_global, data_cost
 from dcc_fg.model import GimbalCalibration
 from dcc_fg.sim.calibration_scene import SceneConfig, SimulatedCalibration, random_mechanism, simulate_calibration
@@ -72,7 +72,7 @@ class GeometryOutcome:
 def calibrate_auto(data: CalibrationDataset, n_joints: int) -> CalibrationResult:
     """The ``--init auto`` path: every automatic start solved at the corner level, the lowest cost kept
     (:func:`dcc_fg.global_fit.calibrate_global`)."""
-    return calibrate_global(replace(data, snapshots=[replace(s, joints=None) for s in data.snapshots]), n_joints, FAST)
+    return calibrate_global(with_joints(data, None), n_joints, FAST)
 
 
 def accuracy_ratios(sim: SimulatedCalibration, auto: CalibrationResult, ref: CalibrationResult) -> tuple[float, float]:

@@ -31,6 +31,7 @@ import gtsam
 import numpy as np
 
 from dcc_fg.calibrate import CalibrationOptions
+from dcc_fg.data import with_joints
 from dcc_fg.global_fit import calibrate_global, data_cost
 from dcc_fg.incremental import BACKENDS, DEFAULT_GLOBAL_UNTIL, IncrementalCalibration, IncrementalOptions
 from dcc_fg.sim.calibration_scene import SceneConfig, simulate_calibration
@@ -60,7 +61,7 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
     args = ap.parse_args(argv)
     sim = simulate_calibration(args.seed, SceneConfig(n_calibration=args.snapshots, n_validation=1))
     data = sim.calibration_set
-    data = replace(data, snapshots=[replace(s, joints=None) for s in data.snapshots])  # encoderless, no guesses
+    data = with_joints(data, None)  # encoderless, no guesses
     load0 = os.getloadavg()
 
     opt = IncrementalOptions(

@@ -22,6 +22,7 @@ import time
 from dataclasses import replace
 
 from dcc_fg.calibrate import CalibrationOptions, CalibrationResult, calibrate, data_cost
+from dcc_fg.data import with_joints
 from dcc_fg.sim.calibration_scene import yaw_roll_pitch_gimbal
 
 
@@ -44,9 +45,7 @@ def main(argv: list[str] | None = None) -> int:
     gains, ratios = [], []
     for seed in seeds:
         sim = yaw_roll_pitch_gimbal(seed, 20, args.offset)
-        d = sim.calibration_set
-        snaps = [replace(s, joints=t) for s, t in zip(d.snapshots, sim.joints_calibration, strict=True)]
-        data = replace(d, snapshots=snaps)
+        data = with_joints(sim.calibration_set, sim.joints_calibration)
         t_base, base = timed(lambda: calibrate(data, sim.truth, base_opt))  # noqa: B023
         t_proj, proj = timed(lambda: calibrate(data, sim.truth, replace(base_opt, project_held=True)))  # noqa: B023
         more = replace(base_opt, max_iterations=base_opt.max_iterations * args.lm_factor)

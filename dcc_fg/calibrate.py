@@ -72,7 +72,7 @@ from dcc_fg.covariance import (
     null_space,
     observable_mask,
 )
-from dcc_fg.data import CalibrationDataset
+from dcc_fg.data import CalibrationDataset, with_joints
 from dcc_fg.degeneracy import NOMINALS, HeldDirections, held_directions
 from dcc_fg.init import joint_angles_from_T_ds, pnp_pose, robust_pose_level_init, zero_joint_init
 from dcc_fg.joint_motion import FLAT_JOINT_SPAN_RAD, check_joint_motion, never_moves
@@ -581,9 +581,7 @@ def continue_projected(data: CalibrationDataset, result: CalibrationResult) -> C
     result holds no directions."""
     opt = result.options
     t_start = time.perf_counter()
-    snapshots = [replace(s, joints=t) for s, t in zip(data.snapshots, result.joint_angles, strict=True)]
-    guesses = replace(data, snapshots=snapshots)
-    problem = initial_problem(guesses, result.calibration, opt, pose_level=False)
+    problem = initial_problem(with_joints(data, result.joint_angles), result.calibration, opt, pose_level=False)
     held = hold_degenerate_directions(problem, opt.nominal)
     if not held.count or problem.kin_key is None:
         return None
@@ -597,7 +595,8 @@ def continue_projected(data: CalibrationDataset, result: CalibrationResult) -> C
     solved, projection = projected_polish(graphs.data, graphs.weak, start, variable_dims(problem))
     if not projection.get("kept") or not projection["data_error_after"] < data_cost(result):
         return None
-    out = finish(problem, held, graphs.weak, solved, result.calibration, opt, t_start, "", projection)
+    note = "continued from the solution with the projected solve (the weakened-prior polish not repeated)"
+    out = finish(problem, held, graphs.weak, solved, result.calibration, opt, t_start, note, projection)
     out.solve_time_s += result.solve_time_s
     return out
 

@@ -62,7 +62,7 @@ L = 3 family, benchmarks/bench_random_mechanisms.py: NEES 8.05 with the lineariz
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Any
 
 import gtsam
@@ -72,7 +72,7 @@ from scipy.stats import chi2
 
 from dcc_fg.auto_init import auto_initial_candidates
 from dcc_fg.calibrate import CalibrationOptions, CalibrationResult, calibrate, continue_projected, data_cost
-from dcc_fg.data import CalibrationDataset
+from dcc_fg.data import CalibrationDataset, with_joints
 from dcc_fg.model import GimbalCalibration
 from dcc_fg.model_selection import select_intersecting
 from dcc_fg.util.errors import EstimatorError
@@ -128,7 +128,7 @@ def starts_of(
         for k, (cal, thetas, rms) in enumerate(candidates):
             d = data
             if mode != "encoders":
-                d = replace(data, snapshots=[replace(s, joints=t) for s, t in zip(data.snapshots, thetas, strict=True)])
+                d = with_joints(data, thetas)
             starts.append(Start(f"automatic {k + 1}", cal, d, float(rms)))
     return starts
 

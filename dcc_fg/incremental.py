@@ -93,7 +93,7 @@ from dcc_fg.calibration_graph import (
     lm_params,
     snapshot_measurements,
 )
-from dcc_fg.data import CalibrationDataset, Snapshot
+from dcc_fg.data import CalibrationDataset, Snapshot, with_joints
 from dcc_fg.global_fit import calibrate_global
 from dcc_fg.init import joint_angles_from_T_ds, pnp_pose
 from dcc_fg.model import GimbalCalibration
@@ -852,8 +852,7 @@ class IncrementalCalibration:
                 self.close()
         cal, thetas, _ = self.current()
         data = self.data
-        guesses = replace(data, snapshots=[replace(s, joints=t) for s, t in zip(data.snapshots, thetas, strict=True)])
-        res = calibrate(guesses, cal, replace(self.options.solver, nominal=self._nominal))
+        res = calibrate(with_joints(data, thetas), cal, replace(self.options.solver, nominal=self._nominal))
         if self._nominal == EXACT and self.options.solver.nominal != EXACT:
             res.extra["model_selection"] = {"model": EXACT, "reason": "kept by the last global solve"}
             res.calibration.statistics["model_selection"] = res.extra["model_selection"]

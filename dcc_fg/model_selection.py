@@ -57,7 +57,7 @@ import numpy as np
 from scipy.stats import chi2
 
 from dcc_fg.calibrate import CalibrationOptions, CalibrationResult, calibrate, data_cost
-from dcc_fg.data import CalibrationDataset
+from dcc_fg.data import CalibrationDataset, with_joints
 from dcc_fg.degeneracy import EXACT, offset_entries
 from dcc_fg.model import GimbalCalibration
 from dcc_fg.util.errors import EstimatorError
@@ -113,9 +113,7 @@ def select_intersecting(
         report = {**base, "model": "general", "reason": reason}
         general.extra["model_selection"] = report
         return general
-    guesses = replace(
-        data, snapshots=[replace(s, joints=t) for s, t in zip(data.snapshots, general.joint_angles, strict=True)]
-    )
+    guesses = with_joints(data, general.joint_angles)
     try:
         exact = calibrate(guesses, exact_start(general), replace(options, nominal=EXACT))
     except (EstimatorError, ValueError) as exc:

@@ -16,7 +16,7 @@ from dcc_fg.auto_init import auto_initialize
 from dcc_fg.calibrate import CalibrationOptions, calibrate, initial_problem
 from dcc_fg.calibration_graph import build_graph, gauge_fixed_joint_offsets, gauge_fixed_kin
 from dcc_fg.covariance import graph_marginals, information_schur, null_space
-from dcc_fg.data import Observation
+from dcc_fg.data import Observation, with_joints
 from dcc_fg.sim.calibration_scene import SceneConfig, simulate_calibration, simulate_snapshots
 from dcc_fg.studies.calibration_accuracy import evaluate_against_truth
 from dcc_fg.targets import TargetGeometry
@@ -134,10 +134,22 @@ def test_three_joint_mechanism_converges() -> None:
     assert np.all(r["ratio_joint"] < joint_limit)
 
 
+def test_with_joints_sets_or_removes_every_guess(demo_sim) -> None:
+    """with_joints: row i becomes snapshot i's joint guess, None removes them all, a count that does not
+    match the snapshots is refused, and the input dataset is not changed."""
+    data, thetas = demo_sim.calibration_set, demo_sim.joints_calibration
+    before = [s.joints for s in data.snapshots]
+    guessed = with_joints(data, thetas)
+    assert all(np.array_equal(s.joints, t) for s, t in zip(guessed.snapshots, thetas, strict=True))
+    assert all(s.joints is None for s in with_joints(guessed, None).snapshots)
+    assert all(s.joints is b for s, b in zip(data.snapshots, before, strict=True))
+    with pytest.raises(ValueError):
+        with_joints(data, thetas[1:])
+
+
 def test_encoders_mode_with_true_angles(demo_sim) -> None:
-    data = demo_sim.calibration_set
-    snaps = [replace(s, joints=t) for s, t in zip(data.snapshots, demo_sim.joints_calibration, strict=True)]
-    res = calibrate(replace(data, snapshots=snaps), demo_sim.initial, CalibrationOptions(mode="encoders"))
+    data = with_joints(demo_sim.calibration_set, demo_sim.joints_calibration)
+    res = calibrate(data, demo_sim.initial, CalibrationOptions(mode="encoders"))
     err = evaluate_against_truth(res, demo_sim.truth, demo_sim.joints_calibration)
     assert res.null_space_dim == res.n_gauge_fixed == 4
     assert err.rotation_rms < 1e-3 and err.translation_rms < 1e-3

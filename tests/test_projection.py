@@ -6,7 +6,6 @@ at or below the joint solve's data cost."""
 from __future__ import annotations
 
 import logging
-from dataclasses import replace
 
 import gtsam
 import numpy as np
@@ -17,6 +16,7 @@ from test_degeneracy import spherical_wrist
 import dcc_fg.calibrate as cal
 from dcc_fg.calibrate import CalibrationOptions, calibrate, data_cost
 from dcc_fg.calibration_graph import GraphSolution
+from dcc_fg.data import with_joints
 from dcc_fg.gauss_newton import DENSE_LIMIT
 from dcc_fg.projection import projected_solve, reduced_system
 from dcc_fg.studies.calibration_accuracy import T_ds_errors, cramer_rao_bound
@@ -104,8 +104,7 @@ def test_projected_polish_ends_at_or_below_the_joint_solve_on_a_nearly_intersect
     tests/test_degeneracy.py)."""
     sim = spherical_wrist(2, 20, offset_m=0.005)  # axes that miss each other by up to 5 mm
     d = sim.calibration_set
-    snaps = [replace(s, joints=t) for s, t in zip(d.snapshots, sim.joints_calibration, strict=True)]
-    data = replace(d, snapshots=snaps)
+    data = with_joints(d, sim.joints_calibration)
     plain = calibrate(data, sim.truth, CalibrationOptions())
     projected = calibrate(data, sim.truth, CalibrationOptions(project_held=True))
     assert plain.extra.get("held_by_prior"), "the scene must leave weakly determined directions"
@@ -122,6 +121,7 @@ def test_projected_polish_ends_at_or_below_the_joint_solve_on_a_nearly_intersect
     # same projected solve from the same point, so the same solution without the joint solve's cost
     cont = cal.continue_projected(data, plain)
     assert cont is not None and cont.extra["held_projection"]["kept"]
+    assert "continued" in cont.extra["held_polish"]  # not labelled as the weakened-prior polish
     assert data_cost(cont) == pytest.approx(data_cost(projected), rel=1e-9)
     dT = np.array([gtsam.Pose3(projected.T_ds(i)).localCoordinates(gtsam.Pose3(cont.T_ds(i))) for i in range(len(e))])
     assert np.max(np.abs(dT)) < 1e-3 * min(crb.rotation_rms, crb.translation_rms)

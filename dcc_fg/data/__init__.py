@@ -5,6 +5,6 @@
 The calibration names are re-exported here (``from dcc_fg.data import Snapshot``).
 """
 
-from dcc_fg.data.calibration import CalibrationDataset, Observation, Snapshot, common_corners
+from dcc_fg.data.calibration import CalibrationDataset, Observation, Snapshot, common_corners, with_joints
 
-__all__ = ["CalibrationDataset", "Observation", "Snapshot", "common_corners"]
+__all__ = ["CalibrationDataset", "Observation", "Snapshot", "common_corners", "with_joints"]

@@ -6,7 +6,7 @@ A real data set (bag, image folder, detection folder) and a simulated one produc
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -74,6 +74,14 @@ class CalibrationDataset:
     target_points: FloatArray
     snapshots: list[Snapshot] = field(default_factory=list)
     source: str = "<memory>"
+
+
+def with_joints(data: CalibrationDataset, thetas: FloatArray | None) -> CalibrationDataset:
+    """``data`` with ``thetas[i]`` (rad, one row of L joint angles per snapshot) as snapshot i's joint
+    guess; ``thetas=None`` removes every guess (the encoderless case)."""
+    if thetas is None:
+        return replace(data, snapshots=[replace(s, joints=None) for s in data.snapshots])
+    return replace(data, snapshots=[replace(s, joints=t) for s, t in zip(data.snapshots, thetas, strict=True)])
 
 
 def common_corners(data: CalibrationDataset) -> CalibrationDataset:

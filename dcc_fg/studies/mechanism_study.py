@@ -53,7 +53,7 @@ import math
 import time
 import traceback
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -63,7 +63,7 @@ from scipy.stats import chi2
 
 from dcc_fg.calibrate import CalibrationOptions, CalibrationResult, calibrate, continue_projected, corner_sigma
 from dcc_fg.calibration_health import calibration_health
-from dcc_fg.data import CalibrationDataset
+from dcc_fg.data import CalibrationDataset, with_joints
 from dcc_fg.degeneracy import EXACT
 from dcc_fg.global_fit import T_ds_differences, calibrate_global, data_cost
 from dcc_fg.io.outputs import plain
@@ -240,11 +240,6 @@ def _nan_floats(d: dict[str, Any], cls: type) -> dict[str, Any]:
 
 def _error_text(exc: BaseException) -> str:
     return f"{type(exc).__name__}: {' '.join(str(exc).split())}"
-
-
-def with_joints(data: CalibrationDataset, thetas: FloatArray) -> CalibrationDataset:
-    """``data`` with ``thetas[i]`` (rad) as snapshot i's joint guess."""
-    return replace(data, snapshots=[replace(s, joints=t) for s, t in zip(data.snapshots, thetas, strict=True)])
 
 
 def truth_residuals(
