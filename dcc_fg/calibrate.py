@@ -78,7 +78,7 @@ from dcc_fg.init import joint_angles_from_T_ds, pnp_pose, robust_pose_level_init
 from dcc_fg.joint_motion import FLAT_JOINT_SPAN_RAD, check_joint_motion, never_moves
 from dcc_fg.model import GimbalCalibration
 from dcc_fg.noise_floor import noise_floor, relative_image_noise
-from dcc_fg.projection import projected_solve
+from dcc_fg.projection import MAX_STEPS, projected_solve
 from dcc_fg.util.errors import EstimatorError, stage
 from factors import chain
 from factors.calibration import RobustLoss, SnapshotMeasurements
@@ -573,12 +573,15 @@ def calibrate(
     return finish(problem, held, graphs.weak, solved, initial, opt, t_start, polish_note, projection)
 
 
-def continue_projected(data: CalibrationDataset, result: CalibrationResult) -> CalibrationResult | None:
+def continue_projected(
+    data: CalibrationDataset, result: CalibrationResult, max_steps: int = MAX_STEPS
+) -> CalibrationResult | None:
     """``result`` (of :func:`calibrate`, encoderless, directions held by prior) solved on from where it
-    stopped with the projected solve (:func:`projected_polish`), without repeating its joint solve: the
-    problem is set up at the result's kinematics and joint angles (no pose-level fit), the held
-    directions found there. None when that solve fails or does not lower the data error, or the
-    result holds no directions."""
+    stopped with the projected solve (:func:`projected_polish`, at most ``max_steps`` steps), without
+    repeating its joint solve: the problem is set up at the result's kinematics and joint angles (no
+    pose-level fit), the held directions found there. None when that solve fails or does not lower the
+    data error, or the result holds no directions. The report's ``total_steps`` adds the projected steps
+    ``result`` had already taken (a continuation of a continuation)."""
     opt = result.options
     t_start = time.perf_counter()
     problem = initial_problem(with_joints(data, result.joint_angles), result.calibration, opt, pose_level=False)
@@ -592,13 +595,22 @@ def continue_projected(data: CalibrationDataset, result: CalibrationResult) -> C
             values.update(X(i), gtsam.Pose3(T))
     error = float(graphs.weak.error(values))
     start = GraphSolution(values, result.iterations, result.initial_error, error)
-    solved, projection = projected_polish(graphs.data, graphs.weak, start, variable_dims(problem))
+    solved, projection = projected_polish(graphs.data, graphs.weak, start, variable_dims(problem), max_steps)
     if not projection.get("kept") or not projection["data_error_after"] < data_cost(result):
         return None
+    earlier = result.extra.get("held_projection") or {}
+    projection["total_steps"] = int(projection["steps"]) + int(earlier.get("total_steps", earlier.get("steps", 0)))
     note = "continued from the solution with the projected solve (the weakened-prior polish not repeated)"
     out = finish(problem, held, graphs.weak, solved, result.calibration, opt, t_start, note, projection)
     out.solve_time_s += result.solve_time_s
     return out
+
+
+def stopped_on_cap(result: CalibrationResult) -> bool:
+    """Whether ``result``'s projected solve lowered the data error but stopped on its step cap while still
+    descending (short of the bottom of the valley; :func:`continue_projected` can take it further)."""
+    projection = result.extra.get("held_projection") or {}
+    return bool(projection.get("kept")) and not projection.get("converged", True)
 
 
 @dataclass
@@ -709,15 +721,17 @@ def projected_polish(
     weak_graph: gtsam.NonlinearFactorGraph,
     solved: GraphSolution,
     dims: list[tuple[int, int]],
+    max_steps: int = MAX_STEPS,
 ) -> tuple[GraphSolution, dict[str, Any]]:
     """The solution moved to the bottom of the valley of the held directions: the projected solve
     (:func:`dcc_fg.projection.projected_solve`) of ``data_graph`` (the data, the gauge and the nominal
-    priors, no weak prior) from ``solved``; kept when it lowers that error. Returns the kept solution
+    priors, no weak prior) from ``solved``, at most ``max_steps`` steps; kept when it lowers that error.
+    Returns the kept solution
     and a report (errors in GTSAM units, steps, converged, kept; ``error`` when the solve failed)."""
     before = float(data_graph.error(solved.values))
     report: dict[str, Any] = {"data_error_before": before}
     try:
-        projected = projected_solve(data_graph, solved.values, dims)
+        projected = projected_solve(data_graph, solved.values, dims, max_steps)
     except (ValueError, RuntimeError, np.linalg.LinAlgError) as exc:
         logger.warning("the projected solve along the held directions failed (%s); the polished solution is kept", exc)
         return solved, {**report, "error": str(exc), "kept": False}

@@ -12,6 +12,7 @@ import dcc_fg.global_fit as gf
 from dcc_fg.calibrate import CalibrationOptions, calibrate, summary_statistics
 from dcc_fg.calibration_health import calibration_health
 from dcc_fg.global_fit import ambiguity_of, calibrate_global, data_cost
+from dcc_fg.projection import MAX_STEPS
 from dcc_fg.report import run_summary_table
 from dcc_fg.sim.calibration_scene import SceneConfig, random_mechanism, simulate_calibration
 
@@ -189,7 +190,7 @@ def test_a_best_solution_with_held_directions_is_solved_on_with_the_projected_so
     real = gf.calibrate
     continued = []
 
-    def fake_continue(data, res):  # noqa: ANN001, ANN202
+    def fake_continue(data, res, max_steps=MAX_STEPS):  # noqa: ANN001, ANN202
         continued.append(res)
         if not lower:
             return None
@@ -211,19 +212,25 @@ def test_a_best_solution_with_held_directions_is_solved_on_with_the_projected_so
         assert data_cost(res) == pytest.approx(starts[0]["data_cost"], rel=1e-12)
 
 
+def _scaled_starts(monkeypatch, scales: list[float]):  # noqa: ANN001, ANN202
+    """(scene, base solution): starts ``s0, s1, ...`` whose joint solves return the base solution with its
+    residuals times ``scales[k]``, each holding a direction by prior."""
+    sim = simulate_calibration(2, SceneConfig(n_calibration=12, n_validation=1))
+    base = gf.calibrate(sim.calibration_set, sim.initial, CalibrationOptions(compute_covariance=False))
+    starts = [gf.Start(f"s{k}", sim.initial, sim.calibration_set) for k in range(len(scales))]
+    scale_of = iter(scales)
+    monkeypatch.setattr(gf, "starts_of", lambda *a, **k: starts)
+    monkeypatch.setattr(gf, "calibrate", lambda d, i, o: _held(_scaled(base, next(scale_of))))
+    return sim, base
+
+
 def test_the_lowest_solutions_are_continued_before_they_are_compared(monkeypatch) -> None:  # noqa: ANN001
     """Of five solutions holding directions, the N_PROJECTED lowest are continued, and a continuation
     that ends below the best unprojected solution wins."""
-    sim = simulate_calibration(2, SceneConfig(n_calibration=12, n_validation=1))
-    base = gf.calibrate(sim.calibration_set, sim.initial, CalibrationOptions(compute_covariance=False))
-    scales = {f"s{k}": x for k, x in enumerate([1.3, 1.0, 1.5, 1.1, 1.2])}
-    starts = [gf.Start(name, sim.initial, sim.calibration_set) for name in scales]
-    names = iter(scales)
-    monkeypatch.setattr(gf, "starts_of", lambda *a, **k: starts)
-    monkeypatch.setattr(gf, "calibrate", lambda d, i, o: _held(_scaled(base, scales[next(names)])))
+    sim, base = _scaled_starts(monkeypatch, [1.3, 1.0, 1.5, 1.1, 1.2])
     continued = []
 
-    def fake_continue(data, res):  # noqa: ANN001, ANN202
+    def fake_continue(data, res, max_steps=MAX_STEPS):  # noqa: ANN001, ANN202
         continued.append(round(float(np.sqrt(data_cost(res) / data_cost(base))), 6))
         return _scaled(res, 0.5) if len(continued) == 3 else None  # the third lowest (1.2) ends lowest
 
@@ -232,3 +239,29 @@ def test_the_lowest_solutions_are_continued_before_they_are_compared(monkeypatch
     assert sorted(continued) == [1.0, 1.1, 1.2] and len(continued) == gf.N_PROJECTED
     assert res.extra["global"]["chosen"] == "s4"
     assert data_cost(res) == pytest.approx(0.36 * data_cost(base), rel=1e-9)
+
+
+@pytest.mark.parametrize("capped", [True, False])
+def test_the_answer_is_continued_on_when_its_continuation_stopped_on_the_cap(monkeypatch, capped: bool) -> None:  # noqa: ANN001
+    """The lowest solution after the N_PROJECTED continuations is continued once more, by FURTHER_STEPS
+    projected steps, when its continuation stopped on the step cap still descending (random L = 3 members
+    14 and 29 ended 1.8e-4 and 1.5e-6 above the truth start that way); the others are not, and a
+    converged continuation is not continued again."""
+    sim, base = _scaled_starts(monkeypatch, [1.2, 1.0, 1.1])
+    calls = []
+
+    def fake_continue(data, res, max_steps=MAX_STEPS):  # noqa: ANN001, ANN202
+        scale = round(float(np.sqrt(data_cost(res) / data_cost(base))), 6)
+        calls.append((scale, max_steps))
+        out = _scaled(res, 0.9)
+        out.extra["held_projection"] = {"kept": True, "converged": not (capped and max_steps == MAX_STEPS)}
+        return out
+
+    monkeypatch.setattr(gf, "continue_projected", fake_continue)
+    res = calibrate_global(sim.calibration_set, 2, CalibrationOptions(compute_covariance=False))
+    first = [(x, MAX_STEPS) for x in (1.0, 1.1, 1.2)]
+    assert calls == (first + [(0.9, gf.FURTHER_STEPS)] if capped else first)
+    assert res.extra["global"]["chosen"] == "s1"
+    assert data_cost(res) == pytest.approx((0.81 if capped else 0.9) ** 2 * data_cost(base), rel=1e-9)
+    names = [s["start"] for s in res.extra["global"]["starts"]]
+    assert (f"s1, projected on ({gf.FURTHER_STEPS} steps)" in names) == capped

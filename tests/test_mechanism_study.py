@@ -12,6 +12,8 @@ from conftest import load_benchmark
 from scipy.stats import chi2
 
 import dcc_fg.studies.mechanism_study as ms
+from dcc_fg.global_fit import FURTHER_STEPS
+from dcc_fg.projection import MAX_STEPS
 from dcc_fg.studies.mechanism_study import (
     MechanismRecord,
     RunOutcome,
@@ -129,21 +131,34 @@ def test_bench_table_marks_each_L() -> None:
     assert "local minimum" in bench.member_line(failing[-1])
 
 
-@pytest.mark.parametrize("held, continued", [(True, "lower"), (True, None), (False, "lower")])
+@pytest.mark.parametrize("held, continued", [(True, "lower"), (True, None), (False, "lower"), (True, "capped")])
 def test_the_truth_start_is_continued_to_the_bottom_of_its_valley(monkeypatch, held, continued) -> None:  # noqa: ANN001
     """The reference solution is the truth start's calibration, continued with the projected solve when it
-    holds directions (as the search does with its lowest solutions); kept as is when the continuation
-    does not lower the cost (continue_projected returns None) or nothing is held."""
+    holds directions (as the search does with its lowest solutions), and continued again by FURTHER_STEPS
+    when that continuation stopped on its step cap (as the search does with its answer); kept as is when
+    the continuation does not lower the cost (continue_projected returns None) or nothing is held."""
 
     class Res:
-        def __init__(self, name: str, is_held: bool) -> None:
+        def __init__(self, name: str, is_held: bool, capped: bool = False) -> None:
             self.name, self.extra = name, ({"held_by_prior": [{"parameters": ["dh1.alpha"]}]} if is_held else {})
+            self.extra["held_projection"] = {"kept": True, "converged": not capped}
 
     calls = []
+
+    def fake_continue(data, res, max_steps=MAX_STEPS):  # noqa: ANN001, ANN202
+        calls.append((res.name, max_steps))
+        if continued is None:
+            return None
+        if res.name == "joint solve":
+            return Res("continued", held, capped=continued == "capped")
+        return Res("continued on", held)
+
     monkeypatch.setattr(ms, "with_joints", lambda data, thetas: data)
     monkeypatch.setattr(ms, "calibrate", lambda data, initial, opt: Res("joint solve", held))
-    monkeypatch.setattr(ms, "continue_projected", lambda data, res: calls.append(res.name) or (
-        Res("continued", held) if continued else None))  # fmt: skip
+    monkeypatch.setattr(ms, "continue_projected", fake_continue)
     out = truth_start(object(), object(), np.zeros((1, 3)), ms.CalibrationOptions())
-    assert calls == (["joint solve"] if held else [])
-    assert out.name == ("continued" if held and continued else "joint solve")
+    expected = {"lower": [("joint solve", MAX_STEPS)], None: [("joint solve", MAX_STEPS)],
+                "capped": [("joint solve", MAX_STEPS), ("continued", FURTHER_STEPS)]}[continued]  # fmt: skip
+    assert calls == (expected if held else [])
+    names = {"lower": "continued", None: "joint solve", "capped": "continued on"}
+    assert out.name == (names[continued] if held else "joint solve")

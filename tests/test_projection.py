@@ -130,20 +130,17 @@ def test_projected_polish_ends_at_or_below_the_joint_solve_on_a_nearly_intersect
     assert again is None or data_cost(again) == pytest.approx(data_cost(projected), rel=1e-9)
 
 
-def test_a_projected_solve_stopped_on_its_cap_is_kept_with_a_warning(monkeypatch, caplog) -> None:  # noqa: ANN001
+def test_a_projected_solve_stopped_on_its_cap_is_kept_with_a_warning(caplog) -> None:  # noqa: ANN001
     """Two steps are not enough here: the lower solution is kept, the report says it did not converge,
     a warning says so, and the joint solve's remaining decrease stays (the convergence health check
     reads it); a converged solve clears it."""
     graph, values, _, _ = synthetic_problem(1)
     dims = [(KIN, 2)] + [(_x(i), 1) for i in range(N_SNAPSHOTS)]
     solved = GraphSolution(values, 500, graph.error(values), graph.error(values), next_decrease=0.5)
-    real = cal.projected_solve
-    monkeypatch.setattr(cal, "projected_solve", lambda g, v, d: real(g, v, d, max_steps=2))
     with caplog.at_level(logging.WARNING, logger="dcc_fg.calibrate"):
-        kept, report = cal.projected_polish(graph, graph, solved, dims)
+        kept, report = cal.projected_polish(graph, graph, solved, dims, max_steps=2)
     assert report["kept"] and not report["converged"] and report["steps"] == 2
     assert kept.final_error < solved.final_error and kept.next_decrease == 0.5
     assert "stopped on its cap of 2 steps" in caplog.text
-    monkeypatch.setattr(cal, "projected_solve", real)
     kept, report = cal.projected_polish(graph, graph, solved, dims)
     assert report["kept"] and report["converged"] and np.isnan(kept.next_decrease)

@@ -61,11 +61,18 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.stats import chi2
 
-from dcc_fg.calibrate import CalibrationOptions, CalibrationResult, calibrate, continue_projected, corner_sigma
+from dcc_fg.calibrate import (
+    CalibrationOptions,
+    CalibrationResult,
+    calibrate,
+    continue_projected,
+    corner_sigma,
+    stopped_on_cap,
+)
 from dcc_fg.calibration_health import calibration_health
 from dcc_fg.data import CalibrationDataset, with_joints
 from dcc_fg.degeneracy import EXACT
-from dcc_fg.global_fit import T_ds_differences, calibrate_global, data_cost
+from dcc_fg.global_fit import FURTHER_STEPS, T_ds_differences, calibrate_global, data_cost
 from dcc_fg.io.outputs import plain
 from dcc_fg.model import GimbalCalibration
 from dcc_fg.sim.write_dataset import CalibrationSimSpec, load_ground_truth, write_calibration_dataset
@@ -266,13 +273,14 @@ def truth_start(
 ) -> CalibrationResult:
     """The reference solution: :func:`dcc_fg.calibrate.calibrate` started at the true kinematics and joint
     angles (rad), solved on to the bottom of its valley with the projected solve when it holds directions
-    by prior (:func:`dcc_fg.calibrate.continue_projected`), as the search does with its lowest solutions:
-    bottoms are compared with bottoms."""
+    by prior (:func:`dcc_fg.calibrate.continue_projected`), and on by ``FURTHER_STEPS`` more when that
+    stopped on its cap, as the search does with its lowest solutions and its answer: bottoms are compared
+    with bottoms."""
     res = calibrate(with_joints(data, thetas), truth, opt)
     if res.extra.get("held_by_prior") and not opt.project_held:
-        cont = continue_projected(data, res)
-        if cont is not None:
-            return cont
+        res = continue_projected(data, res) or res
+        if stopped_on_cap(res):
+            res = continue_projected(data, res, FURTHER_STEPS) or res
     return res
 
 
