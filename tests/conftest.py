@@ -3,11 +3,18 @@
 from __future__ import annotations
 
 import importlib.util
+import os
 import sys
 from pathlib import Path
 from types import ModuleType
 
-import pytest
+# One BLAS thread per pytest-xdist worker: CI runs one worker per core (-n auto), and OpenBLAS's own
+# threads on top of those compete for the same cores. Set before numpy is first imported (below).
+if "PYTEST_XDIST_WORKER" in os.environ:
+    for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ.setdefault(_var, "1")
+
+import pytest  # noqa: E402
 
 from dcc_fg.calibrate import CalibrationOptions, CalibrationResult, calibrate
 from dcc_fg.sim.calibration_scene import SimulatedCalibration, simulate_calibration
