@@ -726,8 +726,8 @@ def projected_polish(
     """The solution moved to the bottom of the valley of the held directions: the projected solve
     (:func:`dcc_fg.projection.projected_solve`) of ``data_graph`` (the data, the gauge and the nominal
     priors, no weak prior) from ``solved``, at most ``max_steps`` steps; kept when it lowers that error.
-    Returns the kept solution
-    and a report (errors in GTSAM units, steps, converged, kept; ``error`` when the solve failed)."""
+    Returns the kept solution and a report (errors in GTSAM units, steps, converged, kept; ``error`` when
+    the solve failed)."""
     before = float(data_graph.error(solved.values))
     report: dict[str, Any] = {"data_error_before": before}
     try:

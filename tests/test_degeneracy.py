@@ -4,7 +4,6 @@ at the Cramer-Rao bound."""
 
 from __future__ import annotations
 
-from dataclasses import replace
 from pathlib import Path
 
 import gtsam
@@ -15,6 +14,7 @@ from dcc_fg.calibrate import CalibrationOptions, calibrate
 from dcc_fg.calibration_graph import gauge_fixed_kin
 from dcc_fg.calibration_health import calibration_health
 from dcc_fg.covariance import information_schur
+from dcc_fg.data import with_joints
 from dcc_fg.degeneracy import held_directions, nominal_priors, offset_directions
 from dcc_fg.model import GimbalCalibration, load_calibration
 from dcc_fg.sim.calibration_scene import (
@@ -37,9 +37,7 @@ def spherical_wrist(seed: int, n_snapshots: int = 20, offset_m: float = 0.0) -> 
 
 
 def with_true_angles(sim: SimulatedCalibration):  # noqa: ANN201
-    d = sim.calibration_set
-    snaps = [replace(s, joints=t) for s, t in zip(d.snapshots, sim.joints_calibration, strict=True)]
-    return replace(d, snapshots=snaps)
+    return with_joints(sim.calibration_set, sim.joints_calibration)
 
 
 def test_linear_prior_factor_jacobian_matches_numerical() -> None:

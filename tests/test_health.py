@@ -23,7 +23,7 @@ from test_real_stereo import L0, euroc_sensor, opencv_stereo_dataset
 from dcc_fg.auto_init import auto_initialize
 from dcc_fg.calibrate import CalibrationOptions, CalibrationResult, calibrate
 from dcc_fg.calibration_health import RMS_RATIO_LIMIT, calibration_health
-from dcc_fg.data import CalibrationDataset, common_corners
+from dcc_fg.data import CalibrationDataset, common_corners, with_joints
 from dcc_fg.io.camchain import CamchainEntry
 from dcc_fg.model import GimbalCalibration
 from dcc_fg.sim.calibration_scene import SceneConfig, SimulatedCalibration, random_mechanism, simulate_calibration
@@ -56,8 +56,7 @@ def failed(report: HealthReport) -> dict[str, str]:
 def with_auto_init(data: CalibrationDataset, n_joints: int) -> tuple[GimbalCalibration, CalibrationDataset]:
     """The initial values ``dcc-fg calibrate --joints L`` would start from (no gimbal.yaml)."""
     initial, thetas, _ = auto_initialize(data, n_joints)
-    snaps = [replace(s, joints=t) for s, t in zip(data.snapshots, thetas, strict=True)]
-    return initial, replace(data, snapshots=snaps)
+    return initial, with_joints(data, thetas)
 
 
 def shifted_pairing(data: CalibrationDataset) -> CalibrationDataset:
@@ -77,9 +76,7 @@ def test_demo_runs_are_healthy(demo_sim: SimulatedCalibration, demo_result: Cali
     val = calibrate(demo_sim.validation_set, demo_result.calibration, CalibrationOptions(mode="validate"))
     assert_healthy(val, demo_sim.validation_set, "demo validation")
     assert calibration_health(val, demo_sim.validation_set).subject == "validation"
-    data = demo_sim.calibration_set
-    snaps = [replace(s, joints=t) for s, t in zip(data.snapshots, demo_sim.joints_calibration, strict=True)]
-    enc_data = replace(data, snapshots=snaps)
+    enc_data = with_joints(demo_sim.calibration_set, demo_sim.joints_calibration)
     enc = calibrate(enc_data, demo_sim.initial, replace(FAST, mode="encoders"))
     assert_healthy(enc, enc_data, "demo encoders")
     # the user's pixel sigma, when right, passes too
@@ -200,9 +197,9 @@ def test_joint_readings_in_degrees_are_refused_before_the_solve() -> None:
     """Encoder readings in degrees go beyond a full turn: refused by the input check, no solve."""
     sim = simulate_calibration(4, SceneConfig(n_joints=1, n_calibration=12, n_validation=2))
     data = sim.calibration_set
-    snaps = [replace(s, joints=np.rad2deg(t)) for s, t in zip(data.snapshots, sim.joints_calibration, strict=True)]
+    degrees = with_joints(data, np.rad2deg(np.asarray(sim.joints_calibration)))
     with pytest.raises(ValueError, match="look like degrees, but radians are needed"):
-        calibrate(replace(data, snapshots=snaps), sim.initial, replace(FAST, mode="encoders"))
+        calibrate(degrees, sim.initial, replace(FAST, mode="encoders"))
 
 
 @pytest.mark.slow
@@ -213,8 +210,7 @@ def test_joint_readings_with_a_wrong_scale_are_caught() -> None:
     data = sim.calibration_set
     scaled = [3.0 * np.asarray(t) for t in sim.joints_calibration]
     assert max(float(np.max(np.abs(t))) for t in scaled) < 2.0 * np.pi
-    snaps = [replace(s, joints=t) for s, t in zip(data.snapshots, scaled, strict=True)]
-    wrong = replace(data, snapshots=snaps)
+    wrong = with_joints(data, np.asarray(scaled))
     res = calibrate(wrong, sim.initial, replace(FAST, mode="encoders", max_iterations=10))
     report = calibration_health(res, wrong)
     print(f"\njoint readings x3: {_ratios(report)}")
@@ -239,9 +235,7 @@ def test_zero_iterations_and_iteration_cap_are_caught(demo_sim: SimulatedCalibra
 def test_wrong_pixel_sigma_is_caught(demo_sim: SimulatedCalibration, demo_result: CalibrationResult) -> None:
     """A --pixel-sigma far below the corner noise (0.4 px) fails against the given sigma, and the
     message says the noise itself is larger (the per-image floor), not the model."""
-    data = demo_sim.calibration_set
-    snaps = [replace(s, joints=t) for s, t in zip(data.snapshots, demo_sim.joints_calibration, strict=True)]
-    enc_data = replace(data, snapshots=snaps)
+    enc_data = with_joints(demo_sim.calibration_set, demo_sim.joints_calibration)
     res = calibrate(enc_data, demo_result.calibration, replace(FAST, mode="encoders", pixel_sigma=0.05))
     bad = failed(calibration_health(res, enc_data))
     assert set(bad) == {"residuals.pixel_sigma"}

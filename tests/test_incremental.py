@@ -20,7 +20,7 @@ from dcc_fg.commands.calibrate_incremental import (
     feed,
     run_incremental,
 )
-from dcc_fg.data import CalibrationDataset
+from dcc_fg.data import CalibrationDataset, with_joints
 from dcc_fg.global_fit import calibrate_global, data_cost
 from dcc_fg.incremental import IncrementalCalibration, IncrementalOptions, Update
 from dcc_fg.io.camchain import CamchainEntry, camchain_to_yaml
@@ -44,7 +44,7 @@ def _scene(
         cfg = replace(cfg, target=target)
     sim = simulate_calibration(seed, cfg)
     data = sim.calibration_set
-    return sim, replace(data, snapshots=[replace(s, joints=None) for s in data.snapshots])  # encoderless, no guesses
+    return sim, with_joints(data, None)  # encoderless, no guesses
 
 
 def _tangent(a: np.ndarray, b: np.ndarray) -> np.ndarray:
